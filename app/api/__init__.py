@@ -1,0 +1,1 @@
+"""The FastAPI server (thin routers; the engine never imports this package)."""

@@ -1,0 +1,85 @@
+"""Speed benchmarks that print ratios against a peer measured in the same run."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+from app.engine.constants import BAR
+from app.engine.control import pipeline as cpl
+from app.engine.human import isotonic
+from app.engine.params import PlantParams
+from app.engine.physics import plant as pl
+from app.engine.physics import sensors as sn
+from app.engine.sim import run_workout
+
+
+def _solve_ivp_workout(params: PlantParams, duration: float, rate_hz: float = 200.0) -> float:
+    """The same closed loop with the plant integrated by ``solve_ivp`` (LSODA)
+    between control ticks; returns wall seconds."""
+    k = pl.build_kernel(params)
+    prog = isotonic(+1, repetitions=8)
+    cp = cpl.default_params(3.0, 1.2, 1, params.vane.torque_per_pa * BAR)
+    x = pl.initial_state(params, 0.0, 3.0, 3.0)
+    dt = 1.0 / rate_hz
+    sc = sn.build_sensor_const(params, dt)
+    st_s = np.zeros(sn.NS)
+    st_c = np.zeros(cpl.NSTATE)
+    meas = np.empty(sn.NM)
+    cmd4 = np.zeros(4)
+    noise = np.random.default_rng(0).standard_normal((int(duration * rate_hz) + 1, 4))
+    t = 0.0
+    t0 = time.perf_counter()
+    for i in range(int(round(duration * rate_hz))):
+        pa, pb = pl.chamber_pressures(x, k)
+        ti = pl.human_torque(t, x[pl.I_POS], x[pl.I_VEL], prog.t, prog.pos, k.hum_k, k.hum_d, k.hum_lim)
+        sn.measure(pa, pb, x[pl.I_PS], x[pl.I_POS], ti, sc, noise[i], st_s, dt, meas)
+        cpl.control_step(meas, st_c, cp, k.fr, dt, cmd4)
+        cmd = np.array([cmd4[0], cmd4[1], cmd4[2], cmd4[3], 0.0, 0.0])
+        # the regulator's wake/rest flag is a discrete state: update it per tick
+        pn = pl.node_pressures(x, k)
+        for s in range(2):
+            e = abs(params.p_atm + cmd[s] * BAR - pn[pl.N_OA + 3 * s])
+            if e > k.prv_db_on:
+                x[pl.I_HA + s] = 1.0
+            elif e < k.prv_db_off:
+                x[pl.I_HA + s] = 0.0
+        sol = solve_ivp(lambda tt, xx: pl.rhs(tt, xx, cmd, k, prog.t, prog.pos), (t, t + dt), x,
+                        method="LSODA", rtol=1e-6, atol=1e-9)
+        x = np.ascontiguousarray(sol.y[:, -1])
+        t += dt
+    return time.perf_counter() - t0
+
+
+def perf(duration: float = 60.0, ivp_duration: float = 2.0) -> dict[str, Any]:
+    """Real-time factors of our simulator and of ``solve_ivp`` on the same loop.
+
+    Args:
+        duration: Simulated workout length for our simulator [s].
+        ivp_duration: Simulated length for the (much slower) ``solve_ivp``
+            peer [s]; its real-time factor is per simulated second either way.
+    """
+    params = PlantParams()
+    run_workout(params, duration=1.0)  # warm-up: compile / load the cache
+    best = float("inf")
+    for _ in range(3):
+        t0 = time.perf_counter()
+        run_workout(params, duration=duration)
+        best = min(best, time.perf_counter() - t0)
+    ivp_wall = _solve_ivp_workout(params, ivp_duration)
+    sim_rtf = duration / best
+    ivp_rtf = ivp_duration / ivp_wall
+    return {
+        "sim_rtf": sim_rtf,
+        "solve_ivp_rtf": ivp_rtf,
+        "speedup_vs_solve_ivp": sim_rtf / ivp_rtf,
+        "workout_s": duration,
+        "sim_wall_s": best,
+        "substep_hz": params.substep_hz,
+        "control_hz": 200.0,
+        "controller": "default (best available)",
+        "goal_rtf": 1000.0,
+    }

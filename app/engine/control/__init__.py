@@ -1,0 +1,1 @@
+"""Controllers: compiled step functions and the small objects that wrap them."""

@@ -1,0 +1,258 @@
+"""The engine loop: read → estimate → control → safety → write, on an injected clock.
+
+With :class:`SimClock` the loop runs as fast as the CPU allows (the simulated
+backend integrates exactly one period per tick); with :class:`WallClock` it is
+paced in a background thread at the configured rate and reports period
+jitter and overruns.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import numpy as np
+
+from app.engine.hardware.base import Command, HardwareInterface, Measurement
+from app.engine.runlog import RunLogWriter
+
+
+class Clock(Protocol):
+    """Time source of the loop."""
+
+    def now(self) -> float:
+        """Current time [s]."""
+        ...
+
+    def sleep_until(self, t: float) -> None:
+        """Return at time ``t`` [s] (immediately if past)."""
+        ...
+
+
+class SimClock:
+    """Virtual time: ``sleep_until`` jumps, so loops run faster than real time."""
+
+    def __init__(self, t0: float = 0.0) -> None:
+        self._t = t0
+
+    def now(self) -> float:
+        """Current virtual time [s]."""
+        return self._t
+
+    def sleep_until(self, t: float) -> None:
+        """Jump to ``t`` [s]."""
+        self._t = max(self._t, t)
+
+
+class WallClock:
+    """Monotonic wall time; sleeps coarsely, then spins for the last 0.3 ms."""
+
+    def __init__(self) -> None:
+        self._t0 = time.perf_counter()
+
+    def now(self) -> float:
+        """Seconds since construction."""
+        return time.perf_counter() - self._t0
+
+    def sleep_until(self, t: float) -> None:
+        """Sleep until ``t`` [s]."""
+        while True:
+            rem = t - self.now()
+            if rem <= 0:
+                return
+            if rem > 0.0005:
+                time.sleep(rem - 0.0003)
+
+
+class Controller(Protocol):
+    """A controller stepped once per period with an explicit ``dt``."""
+
+    def step(self, meas: Measurement, dt: float) -> Command:
+        """Commands for this period."""
+        ...
+
+
+class Estimator(Protocol):
+    """Turns raw measurements into the controller's view (filters, observers)."""
+
+    def update(self, meas: Measurement, dt: float) -> Measurement:
+        """Estimated measurement."""
+        ...
+
+
+class Safety(Protocol):
+    """Filters commands between control and actuators."""
+
+    def apply(self, cmd: Command, meas: Measurement) -> Command:
+        """The command allowed to reach the actuators."""
+        ...
+
+
+class PassThroughSafety:
+    """Minimal safety stage: NaN → safe values, inputs clipped to range."""
+
+    def apply(self, cmd: Command, meas: Measurement) -> Command:
+        """Clip the command."""
+        return cmd.clipped()
+
+
+@dataclass
+class LoopStats:
+    """Timing of the loop.
+
+    Attributes:
+        ticks: Control periods executed.
+        overruns: Periods whose work finished after the next deadline.
+        jitter_p50_ms: Median |actual − nominal start| [ms].
+        jitter_p99_ms: 99th percentile [ms].
+        jitter_max_ms: Largest [ms].
+        rate_hz: Nominal loop rate [Hz].
+        measured_rate_hz: Ticks per wall second over the recent window [Hz].
+    """
+
+    ticks: int = 0
+    overruns: int = 0
+    jitter_p50_ms: float = 0.0
+    jitter_p99_ms: float = 0.0
+    jitter_max_ms: float = 0.0
+    rate_hz: float = 0.0
+    measured_rate_hz: float = 0.0
+
+
+class Engine:
+    """Runs one backend with one controller at a fixed rate.
+
+    Args:
+        backend: The rig.
+        controller: Called once per period.
+        clock: Time source (inject :class:`SimClock` for tests).
+        rate_hz: Control rate [Hz] (thesis: 200 Hz control, 500 Hz identification).
+        safety: Command filter before the actuators.
+        estimator: Optional estimator between read and control.
+        recorder: Optional run log receiving every period's row.
+        on_tick: Optional observer called with (measurement, applied command);
+            must be quick (it runs inside the period).
+    """
+
+    def __init__(
+        self,
+        backend: HardwareInterface,
+        controller: Controller,
+        clock: Clock,
+        rate_hz: float = 200.0,
+        safety: Safety | None = None,
+        estimator: Estimator | None = None,
+        recorder: RunLogWriter | None = None,
+        on_tick: Callable[[Measurement, Command], None] | None = None,
+    ) -> None:
+        if not (1.0 <= rate_hz <= 10000.0):
+            raise ValueError(f"rate_hz = {rate_hz} is outside its allowed range [1, 10000] Hz")
+        self.backend = backend
+        self.controller = controller
+        self.clock = clock
+        self.rate_hz = rate_hz
+        self.period = 1.0 / rate_hz
+        self.safety = safety or PassThroughSafety()
+        self.estimator = estimator
+        self.recorder = recorder
+        self.on_tick = on_tick
+        self.ticks = 0
+        self.overruns = 0
+        self._jitter: deque[float] = deque(maxlen=4096)
+        self._wall: deque[float] = deque(maxlen=512)
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._next = 0.0
+        self.last_measurement: Measurement | None = None
+        self.last_command: Command | None = None
+        self.error: BaseException | None = None
+
+    def tick(self) -> Command:
+        """One period: read → estimate → control → safety → write → log."""
+        meas = self.backend.read()
+        est = self.estimator.update(meas, self.period) if self.estimator else meas
+        cmd = self.controller.step(est, self.period)
+        cmd = self.safety.apply(cmd, meas)
+        applied = self.backend.write(cmd)
+        if self.recorder is not None:
+            self.recorder.append((meas.t, applied.z_a, applied.z_b, applied.u_a, applied.u_b,
+                                  meas.p_a, meas.p_b, meas.p_s, meas.theta, meas.omega, meas.torque))
+        self.last_measurement = meas
+        self.last_command = applied
+        if self.on_tick is not None:
+            self.on_tick(meas, applied)
+        self.ticks += 1
+        return applied
+
+    def run_for(self, duration: float) -> None:
+        """Run synchronously for ``duration`` seconds of clock time."""
+        n = int(round(duration * self.rate_hz))
+        t = self.clock.now()
+        for i in range(n):
+            self.clock.sleep_until(t + i * self.period)
+            self._timed_tick(t + i * self.period)
+        self.clock.sleep_until(t + n * self.period)
+
+    def _timed_tick(self, deadline: float) -> None:
+        start = self.clock.now()
+        self._jitter.append(abs(start - deadline))
+        self.tick()
+        end = self.clock.now()
+        self._wall.append(end)
+        if end > deadline + self.period:
+            self.overruns += 1
+
+    def start(self) -> None:
+        """Run paced in a background thread until :meth:`stop`."""
+        if self._thread is not None and self._thread.is_alive():
+            raise RuntimeError("engine already running")
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="cwrr-engine", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        nxt = self.clock.now()
+        try:
+            while not self._stop.is_set():
+                self.clock.sleep_until(nxt)
+                self._timed_tick(nxt)
+                nxt += self.period
+                lag = self.clock.now() - nxt
+                if lag > self.period:
+                    # skip missed periods rather than bursting to catch up
+                    nxt += (int(lag / self.period)) * self.period
+        except BaseException as exc:  # noqa: BLE001 - recorded and the rig made safe
+            self.error = exc
+            try:
+                self.backend.write(self.backend.safe_command())
+            finally:
+                pass
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop the background thread and put the rig in its safe state."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+        self.backend.write(self.backend.safe_command())
+
+    @property
+    def running(self) -> bool:
+        """Whether the background thread is alive."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def stats(self) -> LoopStats:
+        """Current timing statistics."""
+        j = np.asarray(self._jitter) * 1e3
+        w = list(self._wall)
+        rate = (len(w) - 1) / (w[-1] - w[0]) if len(w) > 1 and w[-1] > w[0] else 0.0
+        return LoopStats(
+            ticks=self.ticks, overruns=self.overruns,
+            jitter_p50_ms=float(np.percentile(j, 50)) if j.size else 0.0,
+            jitter_p99_ms=float(np.percentile(j, 99)) if j.size else 0.0,
+            jitter_max_ms=float(j.max()) if j.size else 0.0,
+            rate_hz=self.rate_hz, measured_rate_hz=rate,
+        )

@@ -1,0 +1,111 @@
+"""Run logs: the fixed ``NAME.csv`` + ``NAME.json`` pair, appended as the run goes.
+
+Durability: rows are buffered and flushed with ``fsync`` at least once per
+``flush_every_s`` of wall time (default 0.5 s), so a crash or ``kill -9``
+loses at most the last second. The JSON metadata is written atomically
+(temporary file + rename) at the start with ``"status": "running"`` and
+rewritten at the end with ``"complete"`` (or ``"interrupted"``), so a reader
+never sees a half-written JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import time
+from pathlib import Path
+from typing import Any, Iterable
+
+from app.engine.sim import LOG_COLUMNS
+
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` so readers see either the old or the new file."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+class RunLogWriter:
+    """Appends one run's rows to ``DIR/NAME.csv`` and keeps ``DIR/NAME.json``.
+
+    Args:
+        directory: Folder of the log pair (created if missing).
+        name: Log name (letters, digits, ``_.-``).
+        meta: Metadata; must hold the fixed keys ``rig``,
+            ``sample_rate_hz``, ``p_atm_bar``, ``working_pressure_bar``,
+            ``experiment``, ``human``.
+        flush_every_s: Longest wall time between durable flushes [s].
+    """
+
+    REQUIRED_META = ("rig", "sample_rate_hz", "p_atm_bar", "working_pressure_bar", "experiment", "human")
+
+    def __init__(self, directory: Path | str, name: str, meta: dict[str, Any], flush_every_s: float = 0.5) -> None:
+        if not _NAME.match(name):
+            raise ValueError(f"log name {name!r} must be 1–128 characters of letters, digits, '_', '.', '-'")
+        missing = [k for k in self.REQUIRED_META if k not in meta]
+        if missing:
+            raise ValueError(f"log metadata lacks {', '.join(missing)}")
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.name = name
+        self.csv_path = self.dir / f"{name}.csv"
+        self.json_path = self.dir / f"{name}.json"
+        if self.csv_path.exists():
+            raise FileExistsError(f"log {self.csv_path} already exists")
+        self.meta = dict(meta, status="running", started_unix=time.time(), columns=list(LOG_COLUMNS))
+        self.flush_every_s = flush_every_s
+        self._fh = open(self.csv_path, "w", encoding="utf-8", newline="")
+        self._fh.write(",".join(LOG_COLUMNS) + "\n")
+        self._buf: list[str] = []
+        self._last_flush = time.monotonic()
+        self.rows = 0
+        self._sync()
+        atomic_write_text(self.json_path, json.dumps(self.meta, indent=1))
+
+    def append(self, row: Iterable[float]) -> None:
+        """Add one row in :data:`LOG_COLUMNS` order."""
+        self._buf.append(",".join(f"{v:.6g}" for v in row))
+        self.rows += 1
+        if time.monotonic() - self._last_flush >= self.flush_every_s:
+            self.flush()
+
+    def append_many(self, rows: Any) -> None:
+        """Add many rows (an (n, 11) array) at once, then flush."""
+        for r in rows:
+            self._buf.append(",".join(f"{v:.6g}" for v in r))
+        self.rows += len(rows)
+        self.flush()
+
+    def flush(self) -> None:
+        """Write the buffered rows durably."""
+        if self._buf:
+            self._fh.write("\n".join(self._buf) + "\n")
+            self._buf.clear()
+        self._sync()
+
+    def _sync(self) -> None:
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+        self._last_flush = time.monotonic()
+
+    def close(self, status: str = "complete", **extra: Any) -> None:
+        """Flush, close and mark the run ``status`` in the metadata."""
+        if self._fh.closed:
+            return
+        self.flush()
+        self._fh.close()
+        self.meta.update(extra, status=status, rows=self.rows, ended_unix=time.time())
+        atomic_write_text(self.json_path, json.dumps(self.meta, indent=1))
+
+    def __enter__(self) -> RunLogWriter:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        self.close("complete" if exc_type is None else "interrupted")

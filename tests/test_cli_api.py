@@ -1,0 +1,52 @@
+"""The command line and the server's contract."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from fastapi.testclient import TestClient
+
+from app.api.main import create_app
+from app.api.settings import Settings
+
+
+def _cwrr(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "app", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_sim_prints_json_summary() -> None:
+    r = _cwrr("sim", "--duration", "10", "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    assert s["samples"] == 2000 and s["real_time_factor"] > 1.0
+    assert 0.5 < s["torque_abs_mean_active_nm"] < 2.0
+
+
+def test_sim_refuses_bad_pressure_with_gui_message() -> None:
+    r = _cwrr("sim", "--pw", "9")
+    assert r.returncode == 2
+    assert "Working pressure can be min. 1 bar and max. 8 bar!" in r.stderr
+
+
+def test_sim_writes_run_log(tmp_path) -> None:
+    r = _cwrr("sim", "--duration", "2", "--log-dir", str(tmp_path), "--name", "w1", "--json")
+    assert r.returncode == 0, r.stderr
+    head = (tmp_path / "w1.csv").read_text().splitlines()[0]
+    assert head == "t,z_a,z_b,u_a,u_b,p_a,p_b,p_s,theta,omega,torque"
+    meta = json.loads((tmp_path / "w1.json").read_text())
+    assert meta["rig"] == "rotary" and meta["human"] is True
+
+
+def test_health_and_openapi_with_lifespan() -> None:
+    app = create_app(Settings(rate_hz=200.0))
+    with TestClient(app) as c:
+        import time
+
+        time.sleep(0.3)
+        h = c.get("/api/health").json()
+        assert h["state"] == "running" and h["backend"] == "sim" and h["ticks"] > 10
+        assert "jitter_p99_ms" in h and "overruns" in h
+        assert "/api/health" in c.get("/openapi.json").json()["paths"]
+        assert c.get("/").status_code == 200

@@ -1,0 +1,159 @@
+"""Engine loop, simulated backend, run logs, and the workout runner."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from app.engine.control.interaction import HoldController, InteractionController
+from app.engine.hardware.base import SAFE_COMMAND, Command
+from app.engine.hardware.sim import SimulatedRig
+from app.engine.human import HumanProgram, isotonic
+from app.engine.loop import Engine, SimClock
+from app.engine.params import ParameterError, PlantParams
+from app.engine.runlog import RunLogWriter
+from app.engine.sim import LOG_COLUMNS, run_workout
+
+META = {"rig": "rotary", "sample_rate_hz": 200.0, "p_atm_bar": 1.01325, "working_pressure_bar": 3.0,
+        "experiment": "test", "human": False}
+
+
+def test_hold_command_reaches_prv_set_pressures(tmp_path) -> None:
+    clock = SimClock()
+    rig = SimulatedRig(clock, period=0.005)
+    rec = RunLogWriter(tmp_path, "hold", META)
+    eng = Engine(rig, HoldController(Command(2.0, 2.0, 0.0, 10.0)), clock, 200.0, recorder=rec)
+    rig.activate()
+    eng.run_for(2.0)
+    rec.close()
+    assert eng.ticks == 400 and eng.overruns == 0
+    m = eng.last_measurement
+    assert m is not None
+    # Eq 3.7–3.9: P = z + P_atm, within the regulator's rest band and sensor noise
+    assert m.p_a == pytest.approx(3.013, abs=0.03)
+    assert m.p_b == pytest.approx(3.013, abs=0.03)
+    lines = (tmp_path / "hold.csv").read_text().splitlines()
+    assert lines[0] == ",".join(LOG_COLUMNS)
+    assert len(lines) == 401
+    meta = json.loads((tmp_path / "hold.json").read_text())
+    assert meta["status"] == "complete" and meta["rows"] == 400
+
+
+def test_write_returns_the_clipped_command() -> None:
+    rig = SimulatedRig(SimClock())
+    applied = rig.write(Command(12.0, -1.0, float("nan"), 11.0))
+    assert applied == Command(10.0, 0.0, 0.0, 10.0)
+
+
+def test_safe_state_vents_both_chambers_equally() -> None:
+    clock = SimClock()
+    rig = SimulatedRig(clock, pw_bar=4.0)
+    eng = Engine(rig, HoldController(SAFE_COMMAND), clock, 200.0)
+    rig.activate()
+    eng.run_for(1.5)
+    m = eng.last_measurement
+    assert m is not None
+    assert m.p_a == pytest.approx(1.013, abs=0.03) and m.p_b == pytest.approx(1.013, abs=0.03)
+    assert abs(m.theta) < 1e-3
+
+
+def test_user_at_rest_keeps_no_action_mode_and_working_pressure() -> None:
+    clock = SimClock()
+    rig = SimulatedRig(clock, pw_bar=3.0)
+    rig.set_program(HumanProgram.rest(10.0))
+    ctl = InteractionController(3.0, 1.2)
+    eng = Engine(rig, ctl, clock, 200.0)
+    rig.activate()
+    modes = []
+    for _ in range(600):
+        eng.run_for(0.005)
+        modes.append(ctl.mode)
+    m = eng.last_measurement
+    assert m is not None
+    assert set(modes) == {0}
+    assert m.p_a == pytest.approx(3.013, abs=0.04) and m.p_b == pytest.approx(3.013, abs=0.04)
+    assert abs(m.theta) < 2e-3
+
+
+def test_engine_loop_equals_batch_runner_statistically() -> None:
+    # Same plant, controller code and program through the Python engine loop
+    # and through the compiled batch runner: same behaviour.
+    prog = isotonic(+1, repetitions=1)
+    res = run_workout(PlantParams(), prog, duration=6.0, pw_bar=3.0)
+    clock = SimClock()
+    rig = SimulatedRig(clock, pw_bar=3.0)
+    rig.set_program(prog)
+    eng = Engine(rig, InteractionController(3.0, 1.2), clock, 200.0)
+    rig.activate()
+    thetas = []
+    for _ in range(1200):
+        eng.run_for(0.005)
+        assert eng.last_measurement is not None
+        thetas.append(eng.last_measurement.theta)
+    th_batch = res.column("theta")
+    assert np.max(np.abs(np.asarray(thetas[:-1]) - th_batch[1:])) < 0.05
+
+
+def test_workout_tracks_user_and_respects_rom() -> None:
+    res = run_workout(duration=20.0)
+    th = res.column("theta")
+    assert th.max() > math.radians(50)
+    assert th.max() <= math.radians(135) + 1e-9
+    assert np.all(np.isfinite(res.log))
+
+
+def test_run_workout_rejects_rate_not_dividing_substep() -> None:
+    with pytest.raises(ParameterError, match="rate_hz"):
+        run_workout(duration=1.0, rate_hz=300.0)
+
+
+def test_runlog_rejects_bad_names_and_missing_meta(tmp_path) -> None:
+    with pytest.raises(ValueError, match="log name"):
+        RunLogWriter(tmp_path, "../evil", META)
+    with pytest.raises(ValueError, match="lacks rig"):
+        RunLogWriter(tmp_path, "ok", {k: v for k, v in META.items() if k != "rig"})
+
+
+def test_runlog_is_durable_before_close(tmp_path) -> None:
+    w = RunLogWriter(tmp_path, "live", META, flush_every_s=0.0)
+    for i in range(10):
+        w.append([i * 0.005] + [0.0] * 10)
+    # not closed: a reader (or a crash) sees every row already
+    assert len((tmp_path / "live.csv").read_text().splitlines()) == 11
+    assert json.loads((tmp_path / "live.json").read_text())["status"] == "running"
+    w.close("interrupted")
+    assert json.loads((tmp_path / "live.json").read_text())["status"] == "interrupted"
+
+
+def test_paced_engine_thread_reports_timing() -> None:
+    from app.engine.loop import WallClock
+
+    clock = WallClock()
+    rig = SimulatedRig(clock, pw_bar=3.0)
+    eng = Engine(rig, HoldController(Command(2.0, 2.0, 0.0, 10.0)), clock, 200.0)
+    rig.activate()
+    eng.start()
+    import time
+
+    time.sleep(0.5)
+    eng.stop()
+    st = eng.stats()
+    assert 60 <= st.ticks <= 140
+    assert st.jitter_p99_ms >= 0.0 and st.measured_rate_hz > 100.0
+    assert rig.last_applied == SAFE_COMMAND
+
+
+def test_linear_rig_extends_under_pressure_difference() -> None:
+    from app.engine.physics import plant as pl
+
+    p = PlantParams.linear_rig("C3")
+    k = pl.build_kernel(p)
+    x = pl.initial_state(p, 0.05, 3.0, 1.01325)
+    cmd = np.array([2.0, 0.0, 0.0, 10.0, 0.0, 0.0])
+    out = np.zeros(pl.NO)
+    pl.advance(0.0, x, cmd, k, 2000, np.zeros(0), np.zeros(0), out)
+    assert x[pl.I_POS] > 0.06
+    assert 0.0 <= x[pl.I_POS] <= 0.300

@@ -1,0 +1,124 @@
+"""Physics invariants as hypothesis properties."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from app.engine.constants import BAR, CP_AIR
+from app.engine.params import PlantParams
+from app.engine.physics import plant as pl
+from app.engine.physics.flow import iso6358_flow, iso6358_signed, new_model_flow
+
+P = st.floats(min_value=1.0, max_value=9.0)
+FAST = settings(max_examples=60, deadline=None)
+
+
+@FAST
+@given(pu=P, r1=st.floats(0.0, 1.0), r2=st.floats(0.0, 1.0), b=st.floats(0.05, 0.6))
+def test_iso_flow_is_monotonic_in_pressure_ratio(pu: float, r1: float, r2: float, b: float) -> None:
+    lo, hi = sorted((r1, r2))
+    q_lo = iso6358_flow(pu * BAR, lo * pu * BAR, 3.1e-8, b, 293.15)[0]
+    q_hi = iso6358_flow(pu * BAR, hi * pu * BAR, 3.1e-8, b, 293.15)[0]
+    assert q_lo >= q_hi - 1e-15
+    assert q_hi >= 0.0
+
+
+@FAST
+@given(p=P, b=st.floats(0.05, 0.6))
+def test_iso_flow_is_zero_at_equal_pressures(p: float, b: float) -> None:
+    assert iso6358_signed(p * BAR, p * BAR, 3.1e-8, b, 293.15, 293.15)[0] == 0.0
+
+
+@FAST
+@given(p1=P, p2=P)
+def test_signed_flow_is_antisymmetric(p1: float, p2: float) -> None:
+    q12 = iso6358_signed(p1 * BAR, p2 * BAR, 3.1e-8, 0.26, 293.15, 293.15)[0]
+    q21 = iso6358_signed(p2 * BAR, p1 * BAR, 3.1e-8, 0.26, 293.15, 293.15)[0]
+    assert q12 == -q21
+    assert np.sign(q12) == np.sign(p1 - p2)
+
+
+@FAST
+@given(pu=P, r1=st.floats(0.0, 1.0), r2=st.floats(0.0, 1.0), a=st.floats(0.15, 1.0), eps=st.floats(0.5, 1.8))
+def test_new_model_flow_monotonic_and_zero_at_cracking_point(
+    pu: float, r1: float, r2: float, a: float, eps: float
+) -> None:
+    lo, hi = sorted((r1, r2))
+    g = 40.0 * CP_AIR
+
+    def q(r: float) -> float:
+        return new_model_flow(pu * BAR, r * pu * BAR, 1.0, 5.0, a, eps, g, 0.0, 1.0, 293.15)[0]
+
+    assert q(lo) >= q(hi) - 1e-15
+    q_crack = new_model_flow(pu * BAR, a * pu * BAR, 1.0, 5.0, a, eps, g, 0.0, 1.0, 293.15)[0]
+    assert abs(q_crack) <= 1e-9 * abs(q(0.0))
+
+
+@FAST
+@given(pa=P, theta=st.floats(-2.0, 2.0))
+def test_zero_pneumatic_torque_at_equal_pressures(pa: float, theta: float) -> None:
+    p = PlantParams()
+    k = pl.build_kernel(p)
+    x = pl.initial_state(p, theta, pa, pa)
+    a, b = pl.chamber_pressures(x, k)
+    assert a == b or abs(a - b) < 1e-9 * a
+    assert abs(a * k.area_a - b * k.area_b - k.p_atm * k.area_rod) < 1e-12
+
+
+@FAST
+@given(pa=P, pb=P, theta=st.floats(-2.0, 2.0), omega=st.floats(-3.0, 3.0))
+def test_closed_chambers_conserve_gas_mass(pa: float, pb: float, theta: float, omega: float) -> None:
+    from app.engine.params import DCVParams
+
+    p = PlantParams(dcv=DCVParams(underlap_fill_v=0.0, underlap_exh_v=0.0))
+    k = pl.build_kernel(p)
+    x = pl.initial_state(p, theta, pa, pb)
+    x[pl.I_VEL] = omega
+    m0 = x[pl.I_M0 + pl.N_CA], x[pl.I_M0 + pl.N_CB]
+    cmd = np.array([0.0, 0.0, 5.0, 5.0, 0.0, 0.0])
+    out = np.zeros(pl.NO)
+    pl.advance(0.0, x, cmd, k, 400, np.zeros(0), np.zeros(0), out)
+    assert (x[pl.I_M0 + pl.N_CA], x[pl.I_M0 + pl.N_CB]) == m0  # exactly: masses are the states
+
+
+@FAST
+@given(omega=st.floats(0.05, 5.0), sign=st.sampled_from([-1.0, 1.0]), pw=st.floats(1.0, 6.0))
+def test_friction_opposes_motion_and_never_reverses_it(omega: float, sign: float, pw: float) -> None:
+    p = PlantParams()
+    k = pl.build_kernel(p)
+    x = np.zeros(pl.NX)
+    x[pl.I_VEL] = sign * omega
+    speeds = []
+    for _ in range(2000):
+        tf = pl._moreau_mech(x, 0.0, pw, k.fr, k.fr_j, k.inertia, -10.0, 10.0, 5e-4)
+        assert tf * sign >= 0.0  # friction torque acts against the motion
+        speeds.append(x[pl.I_VEL] * sign)
+    s = np.array(speeds)
+    assert np.all(s >= 0.0)  # never reverses
+    assert np.all(np.diff(s) <= 1e-15)  # only slows down
+    assert s[-1] == 0.0  # and comes to rest exactly
+
+
+@FAST
+@given(frac=st.floats(-0.99, 0.99), pw=st.floats(1.0, 6.0))
+def test_static_friction_holds_below_breakaway(frac: float, pw: float) -> None:
+    p = PlantParams()
+    k = pl.build_kernel(p)
+    ts_ccw = float(np.interp(pw, k.fr[0], k.fr[1]))
+    ts_cw = float(np.interp(pw, k.fr[0], k.fr[5]))
+    drive = frac * (ts_ccw if frac > 0 else ts_cw)
+    x = np.zeros(pl.NX)
+    for _ in range(200):
+        pl._moreau_mech(x, drive, pw, k.fr, k.fr_j, k.inertia, -10.0, 10.0, 5e-4)
+    assert x[pl.I_VEL] == 0.0 and x[pl.I_POS] == 0.0
+
+
+def test_breakaway_above_static_friction() -> None:
+    p = PlantParams()
+    k = pl.build_kernel(p)
+    x = np.zeros(pl.NX)
+    ts = float(np.interp(3.0, k.fr[0], k.fr[1]))
+    pl._moreau_mech(x, 1.05 * ts, 3.0, k.fr, k.fr_j, k.inertia, -10.0, 10.0, 5e-4)
+    assert x[pl.I_VEL] > 0.0
