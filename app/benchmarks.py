@@ -47,7 +47,7 @@ def _solve_ivp_workout(params: PlantParams, duration: float, rate_hz: float = 20
                 x[pl.I_HA + s] = 1.0
             elif e < k.prv_db_off:
                 x[pl.I_HA + s] = 0.0
-        sol = solve_ivp(lambda tt, xx: pl.rhs(tt, xx, cmd, k, prog.t, prog.pos), (t, t + dt), x,
+        sol = solve_ivp(lambda tt, xx, cmd=cmd: pl.rhs(tt, xx, cmd, k, prog.t, prog.pos), (t, t + dt), x,
                         method="LSODA", rtol=1e-6, atol=1e-9)
         x = np.ascontiguousarray(sol.y[:, -1])
         t += dt

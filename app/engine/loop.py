@@ -11,8 +11,9 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 
@@ -224,7 +225,7 @@ class Engine:
                 if lag > self.period:
                     # skip missed periods rather than bursting to catch up
                     nxt += (int(lag / self.period)) * self.period
-        except BaseException as exc:  # noqa: BLE001 - recorded and the rig made safe
+        except BaseException as exc:
             self.error = exc
             try:
                 self.backend.write(self.backend.safe_command())

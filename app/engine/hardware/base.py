@@ -39,7 +39,8 @@ class Measurement:
 
     def is_finite(self) -> bool:
         """Whether every channel is a finite number."""
-        return all(math.isfinite(v) for v in (self.t, self.p_a, self.p_b, self.p_s, self.theta, self.omega, self.torque))
+        vals = (self.t, self.p_a, self.p_b, self.p_s, self.theta, self.omega, self.torque)
+        return all(math.isfinite(v) for v in vals)
 
 
 @dataclass(frozen=True, slots=True)

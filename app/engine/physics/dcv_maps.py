@@ -96,7 +96,7 @@ def derive_new_model_maps(
     for i, u in enumerate(u_grid):
         f, e = openings(float(u), underlap_fill_v, underlap_exh_v)
         for j, ps_bar in enumerate(ps_grid):
-            ps = ps_bar * BAR
+            ps = float(ps_bar) * BAR
             if f <= 0.0:
                 p_eq = p_atm
             elif e <= 0.0:
@@ -111,7 +111,7 @@ def derive_new_model_maps(
     k5_e = float(np.polyval(tables.K_EXH_POLY, 5.0))
     g_f = np.zeros(u_grid.size)
     g_e = np.zeros(u_grid.size)
-    ps = 5.0 * BAR
+    ps = float(5.0 * BAR)
     j5 = int(np.argmin(np.abs(ps_grid - 5.0)))
     for i, u in enumerate(u_grid):
         f, e = openings(float(u), underlap_fill_v, underlap_exh_v)

@@ -38,11 +38,11 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from app.engine import tables
 from app.engine.constants import BAR, CP_AIR, CV_AIR, R_AIR
 from app.engine.params import PlantParams, RotaryFriction, conductance_si
 from app.engine.physics.dcv_maps import derive_new_model_maps
 from app.engine.physics.flow import interp2_clip, interp_clip, iso6358_signed, new_model_flow, polyval
-from app.engine import tables
 
 # ----------------------------------------------------------------- state layout
 I_POS = 0  # θ [rad] or x [m]
@@ -95,7 +95,8 @@ _KERNEL_FIELDS = (
     "hum_k", "hum_d", "hum_lim",
     "h",
 )
-Kernel = namedtuple("Kernel", _KERNEL_FIELDS)  # type: ignore[misc]
+_namedtuple: Any = namedtuple  # field list is data-driven; mypy cannot type it
+Kernel: Any = _namedtuple("Kernel", _KERNEL_FIELDS)
 """Compiled-loop constants (SI) derived from :class:`PlantParams`."""
 
 
@@ -782,7 +783,9 @@ def rhs(t: float, x: np.ndarray, cmd: np.ndarray, k: Any, prog_t: np.ndarray, pr
     return dx
 
 
-def initial_state(p: PlantParams, pos: float = 0.0, pa_bar: float | None = None, pb_bar: float | None = None) -> np.ndarray:
+def initial_state(
+    p: PlantParams, pos: float = 0.0, pa_bar: float | None = None, pb_bar: float | None = None
+) -> np.ndarray:
     """A consistent state at rest: all nodes at the given pressures [bar abs].
 
     Args:

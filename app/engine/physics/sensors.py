@@ -20,7 +20,7 @@ from numba import njit
 from app.engine.constants import BAR
 from app.engine.params import PlantParams
 
-SensorConst = namedtuple(
+SensorConst: Any = namedtuple(
     "SensorConst",
     [
         "p_noise", "p_fs", "p_span", "gain_a", "gain_b", "bias_a", "bias_b",
