@@ -30,7 +30,14 @@ class Station:
         self.engine = Engine(self.backend, self.controller, self.clock, rate_hz)
 
     def start(self) -> None:
-        """Activate the backend and start the paced loop."""
+        """Compile the kernels, activate the backend and start the paced loop.
+
+        The first read/step of a fresh install compiles the numba kernels
+        (seconds); doing it here keeps that stall out of the paced loop's
+        jitter and overrun counts.
+        """
+        self.controller.step(self.backend.read(), self.engine.period)
+        self.controller.reset()
         self.backend.activate()
         self.engine.start()
 
