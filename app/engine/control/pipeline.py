@@ -24,7 +24,6 @@ import numpy as np
 from numba import njit
 
 from app.engine.constants import BAR, P_ATM
-from app.engine.physics.flow import interp_clip
 from app.engine.physics.plant import stribeck_params
 from app.engine.physics.sensors import M_PA, M_PB, M_TQ, M_VEL
 
@@ -170,11 +169,3 @@ def control_step(meas: np.ndarray, st: np.ndarray, cp: np.ndarray, fr: np.ndarra
     cmd[K_ZB] = min(max(zb, 0.0), cp[P_ZMAX])
     cmd[K_UA] = cp[P_UA_OPEN]
     cmd[K_UB] = cp[P_UB_OPEN]
-
-
-def estimator_table(fr_plant: np.ndarray) -> np.ndarray:
-    """The estimator's friction table in the plant's packed layout [bar, N·m]."""
-    return np.ascontiguousarray(fr_plant)
-
-
-_ = interp_clip  # re-exported for the controllers of issue 3

@@ -199,17 +199,6 @@ def derive_new_model_maps_cached(c: float, b: float, ulf: float, ule: float, p_a
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def volumes(pos: float, k: Any, out: np.ndarray) -> None:
-    """Node volumes [m³] at position ``pos`` into ``out`` (6 entries)."""
-    out[N_OA] = k.prv_vol
-    out[N_OB] = k.prv_vol
-    out[N_TA] = k.tube_vol
-    out[N_TB] = k.tube_vol
-    out[N_CA] = k.vd_a + k.area_a * (pos - k.pos_min)
-    out[N_CB] = k.vd_b + k.area_b * (k.pos_max - pos)
-
-
-@njit(cache=True, inline="always", error_model="numpy")
 def _vol_temps(
     x: np.ndarray, pos: float, v_o: float, v_t: float, vd_a: float, vd_b: float, area_a: float, area_b: float,
     pos_min: float, pos_max: float, heat_on: bool, t_atm: float, vol: np.ndarray, tn: np.ndarray
@@ -228,14 +217,11 @@ def _vol_temps(
         tn[N_CB] = x[I_TCB]
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def node_temps(x: np.ndarray, k: Any, out: np.ndarray) -> None:
-    """Node gas temperatures [K]: lines isothermal, chambers per state."""
-    for i in range(NN):
-        out[i] = k.t_atm
-    if k.heat_on:
-        out[N_CA] = x[I_TCA]
-        out[N_CB] = x[I_TCB]
+@njit(cache=True, error_model="numpy")
+def vol_temps(x: np.ndarray, k: Any, vol: np.ndarray, tn: np.ndarray) -> None:
+    """Node volumes [m³] and temperatures [K] of state ``x`` (6 entries each)."""
+    _vol_temps(x, x[I_POS], k.prv_vol, k.tube_vol, k.vd_a, k.vd_b, k.area_a, k.area_b, k.pos_min, k.pos_max,
+               k.heat_on, k.t_atm, vol, tn)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -727,8 +713,7 @@ def rhs(t: float, x: np.ndarray, cmd: np.ndarray, k: Any, prog_t: np.ndarray, pr
     p = np.empty(NN)
     f = np.empty(NN)
     jac = np.empty((NN, NN))
-    volumes(x[I_POS], k, vol)
-    node_temps(x, k, tn)
+    vol_temps(x, k, vol, tn)
     for i in range(NN):
         p[i] = x[I_M0 + i] * R_AIR * tn[i] / vol[i]
     xx = x.copy()
@@ -798,7 +783,7 @@ def initial_state(
     x = np.zeros(NX)
     x[I_POS] = pos
     vol = np.empty(NN)
-    volumes(pos, k, vol)
+    vol_temps(x, k, vol, np.empty(NN))
     pa = (pa_bar * BAR) if pa_bar is not None else p.p_atm
     pb = (pb_bar * BAR) if pb_bar is not None else p.p_atm
     for i in range(NN):
@@ -814,6 +799,5 @@ def node_pressures(x: np.ndarray, k: Any) -> np.ndarray:
     """All six node pressures [Pa] of state ``x``."""
     vol = np.empty(NN)
     tn = np.empty(NN)
-    volumes(float(x[I_POS]), k, vol)
-    node_temps(x, k, tn)
+    vol_temps(x, k, vol, tn)
     return np.asarray(x[I_M0 : I_M0 + NN] * R_AIR * tn / vol)
