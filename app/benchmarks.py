@@ -10,6 +10,7 @@ from scipy.integrate import solve_ivp
 
 from app.engine.constants import BAR
 from app.engine.control import pipeline as cpl
+from app.engine.control.config import ControllerConfig
 from app.engine.human import isotonic
 from app.engine.params import PlantParams
 from app.engine.physics import plant as pl
@@ -22,7 +23,7 @@ def _solve_ivp_workout(params: PlantParams, duration: float, rate_hz: float = 20
     between control ticks; returns wall seconds."""
     k = pl.build_kernel(params)
     prog = isotonic(+1, repetitions=8)
-    cp = cpl.default_params(3.0, 1.2, 1, params.vane.torque_per_pa * BAR)
+    cp, fr_est, fz = ControllerConfig(controller="fuzzy").pack()
     x = pl.initial_state(params, 0.0, 3.0, 3.0)
     dt = 1.0 / rate_hz
     sc = sn.build_sensor_const(params, dt)
@@ -38,7 +39,7 @@ def _solve_ivp_workout(params: PlantParams, duration: float, rate_hz: float = 20
         pa, pb = pl.chamber_pressures(x, k)
         ti = pl.human_torque(t, x[pl.I_POS], x[pl.I_VEL], prog.t, prog.pos, k.hum_k, k.hum_d, k.hum_lim)
         sn.measure(pa, pb, x[pl.I_PS], x[pl.I_POS], ti, sc, noise[i], st_s, dt, meas)
-        cpl.control_step(meas, st_c, cp, k.fr, dt, cmd4)
+        cpl.control_step(meas, st_c, cp, fr_est, fz, dt, cmd4)
         cmd = np.array([cmd4[0], cmd4[1], cmd4[2], cmd4[3], 0.0, 0.0])
         # the regulator's wake/rest flag is a discrete state: update it per tick
         pn = pl.node_pressures(x, k)
@@ -64,12 +65,15 @@ def perf(duration: float = 60.0, ivp_duration: float = 2.0) -> dict[str, Any]:
             peer [s]; its real-time factor is per simulated second either way.
     """
     params = PlantParams()
-    run_workout(params, duration=1.0)  # warm-up: compile / load the cache
+    ctl = ControllerConfig(controller="fuzzy", pdra=True, tdra=True)
+    run_workout(params, duration=1.0, control=ctl)  # warm-up: compile / load the cache
     best = float("inf")
     for _ in range(3):
         t0 = time.perf_counter()
-        run_workout(params, duration=duration)
+        run_workout(params, duration=duration, control=ctl)
         best = min(best, time.perf_counter() - t0)
+    batch = batch36()
+    fz = fuzzy_vs_skfuzzy()
     ivp_wall = _solve_ivp_workout(params, ivp_duration)
     sim_rtf = duration / best
     ivp_rtf = ivp_duration / ivp_wall
@@ -81,6 +85,54 @@ def perf(duration: float = 60.0, ivp_duration: float = 2.0) -> dict[str, Any]:
         "sim_wall_s": best,
         "substep_hz": params.substep_hz,
         "control_hz": 200.0,
-        "controller": "default (best available)",
+        "controller": "fuzzy + PDRA + TDRA",
         "goal_rtf": 1000.0,
+        "batch36_s": batch,
+        "goal_batch36_s": 5.0,
+        **fz,
     }
+
+
+def batch36() -> float:
+    """Wall time of the 36 main thesis scenario runs (after warm-up) [s]."""
+    from app.engine.scenarios import iter_matrix
+
+    next(iter_matrix())  # warm-up
+    t0 = time.perf_counter()
+    n = sum(1 for _ in iter_matrix(ablations=False))
+    assert n == 36
+    return time.perf_counter() - t0
+
+
+def fuzzy_vs_skfuzzy(n_ours: int = 20000, n_peer: int = 20) -> dict[str, Any]:
+    """Per-evaluation time of our fuzzy scheduler against scikit-fuzzy's
+    ``ControlSystemSimulation`` on the same rule base and inputs.
+
+    Both are timed through their Python entry points, ours including the call
+    overhead; the peer is skipped (``None``) if scikit-fuzzy is not installed.
+    """
+    from app.engine.control.fuzzy import FuzzyConfig, FuzzyScheduler
+
+    cfg = FuzzyConfig(defuzz="centroid")
+    ours = FuzzyScheduler(cfg)
+    rng = np.random.default_rng(0)
+    es = rng.uniform(-1.0, 1.0, n_ours)
+    ds = rng.uniform(-10.0, 10.0, n_ours)
+    ours(0.1, 0.1)
+    t0 = time.perf_counter()
+    for e, d in zip(es, ds, strict=True):
+        ours(e, d)
+    t_ours = (time.perf_counter() - t0) / n_ours
+    try:
+        from app.skfuzzy_peer import build_skfuzzy
+    except ImportError:
+        return {"fuzzy_eval_us": t_ours * 1e6, "skfuzzy_eval_us": None, "fuzzy_speedup_vs_skfuzzy": None}
+    sim = build_skfuzzy(cfg, output_points=1001)
+    t0 = time.perf_counter()
+    for e, d in zip(es[:n_peer], ds[:n_peer], strict=True):
+        sim.input["e"] = e
+        sim.input["de"] = d
+        sim.compute()
+    t_peer = (time.perf_counter() - t0) / n_peer
+    return {"fuzzy_eval_us": t_ours * 1e6, "skfuzzy_eval_us": t_peer * 1e6,
+            "fuzzy_speedup_vs_skfuzzy": t_peer / t_ours, "goal_fuzzy_speedup": 100.0}

@@ -59,8 +59,21 @@ def _sim(args: argparse.Namespace) -> int:
 def _bench(args: argparse.Namespace) -> int:
     from app.benchmarks import perf
 
-    if args.which != "perf":
-        raise ValueError(f"unknown benchmark {args.which!r}")
+    if args.which == "thesis":
+        from pathlib import Path
+
+        from app.thesis_bench import run_thesis_bench
+
+        if not args.out:
+            raise ValueError("bench thesis needs --out DIR (where results.json and the charts go)")
+        records = run_thesis_bench(Path(args.out), seed=args.seed, plots=not args.no_plots)
+        if args.json:
+            print(json.dumps(records))
+        else:
+            print((Path(args.out) / "results.md").read_text())
+        return 0
+    if not (0.0 < args.duration <= 3600.0):
+        raise ValueError(f"--duration {args.duration} is outside its allowed range (0, 3600] s")
     res = perf(duration=args.duration)
     print(json.dumps(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
     return 0
@@ -91,8 +104,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     s.add_argument("--json", action="store_true")
     s.set_defaults(fn=_sim)
     b = sub.add_parser("bench", help="benchmarks")
-    b.add_argument("which", choices=("perf",))
-    b.add_argument("--duration", type=float, default=60.0)
+    b.add_argument("which", choices=("perf", "thesis"))
+    b.add_argument("--duration", type=float, default=60.0, help="perf: simulated workout length [s]")
+    b.add_argument("--out", default="", help="thesis: output directory")
+    b.add_argument("--seed", type=int, default=0, help="thesis: base seed of the sensor noise")
+    b.add_argument("--no-plots", action="store_true", help="thesis: skip the figures")
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=_bench)
     v = sub.add_parser("serve", help="start the lab station server on the simulated plant")

@@ -64,7 +64,7 @@ def test_user_at_rest_keeps_no_action_mode_and_working_pressure() -> None:
     clock = SimClock()
     rig = SimulatedRig(clock, pw_bar=3.0)
     rig.set_program(HumanProgram.rest(10.0))
-    ctl = InteractionController(3.0, 1.2)
+    ctl = InteractionController(controller="default", pw_bar=3.0, target_nm=1.2)
     eng = Engine(rig, ctl, clock, 200.0)
     rig.activate()
     modes = []
@@ -86,7 +86,7 @@ def test_engine_loop_equals_batch_runner_statistically() -> None:
     clock = SimClock()
     rig = SimulatedRig(clock, pw_bar=3.0)
     rig.set_program(prog)
-    eng = Engine(rig, InteractionController(3.0, 1.2), clock, 200.0)
+    eng = Engine(rig, InteractionController(controller="default", pw_bar=3.0, target_nm=1.2), clock, 200.0)
     rig.activate()
     thetas = []
     for _ in range(1200):

@@ -50,6 +50,13 @@ class HumanProgram:
         pos = np.concatenate([self.pos[keep], [pos_stop, pos_stop]])
         return HumanProgram(t, pos)
 
+    def let_go(self, t_release: float) -> HumanProgram:
+        """The user releases the handle at ``t_release`` [s]: no torque after it."""
+        keep = self.t < t_release
+        t = np.concatenate([self.t[keep], [t_release, t_release + 1e-9, t_release + 1.0]])
+        pos = np.concatenate([self.pos[keep], [self.target(t_release), np.nan, np.nan]])
+        return HumanProgram(t, pos)
+
     @staticmethod
     def rest(duration: float = 1.0) -> HumanProgram:
         """The user holds the handle at neutral and does nothing."""

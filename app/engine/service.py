@@ -26,7 +26,7 @@ class Station:
         self.clock = WallClock()
         self.backend = SimulatedRig(self.clock, period=1.0 / rate_hz, pw_bar=pw_bar)
         self.backend.set_program(isotonic(+1, repetitions=1000))  # ≈ 2.5 h of exercise
-        self.controller = InteractionController(pw_bar, target_nm)
+        self.controller = InteractionController(pw_bar=pw_bar, target_nm=target_nm)
         self.engine = Engine(self.backend, self.controller, self.clock, rate_hz)
 
     def start(self) -> None:

@@ -11,6 +11,7 @@ from numba import njit
 
 from app.engine.constants import BAR
 from app.engine.control import pipeline as cpl
+from app.engine.control.config import ControllerConfig
 from app.engine.human import HumanProgram
 from app.engine.params import ParameterError, PlantParams
 from app.engine.physics import plant as pl
@@ -110,8 +111,9 @@ class Simulator:
 
 @njit(cache=True, error_model="numpy")
 def _closed_loop(
-    x: np.ndarray, k: Any, sc: Any, cp: np.ndarray, fr_est: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray,
-    n_ticks: int, n_sub: int, dt: float, noise: np.ndarray, dist: np.ndarray, log: np.ndarray, truth: np.ndarray,
+    x: np.ndarray, k: Any, sc: Any, cp: np.ndarray, fr_est: np.ndarray, fz: np.ndarray, prog_t: np.ndarray,
+    prog_pos: np.ndarray, n_ticks: int, n_sub: int, dt: float, noise: np.ndarray, dist: np.ndarray,
+    log: np.ndarray, truth: np.ndarray,
 ) -> None:
     st_s = np.zeros(sn.NS)
     st_c = np.zeros(cpl.NSTATE)
@@ -126,7 +128,7 @@ def _closed_loop(
         pa, pb = pl.chamber_pressures(x, k)
         ti = pl.human_torque(t, x[pl.I_POS], x[pl.I_VEL], prog_t, prog_pos, k.hum_k, k.hum_d, k.hum_lim)
         sn.measure(pa, pb, x[pl.I_PS], x[pl.I_POS], ti, sc, noise[i], st_s, dt, meas)
-        cpl.control_step(meas, st_c, cp, fr_est, dt, cmd4)
+        cpl.control_step(meas, st_c, cp, fr_est, fz, dt, cmd4)
         cmd[0] = cmd4[0]
         cmd[1] = cmd4[1]
         cmd[2] = cmd4[2]
@@ -182,7 +184,7 @@ def run_workout(
     program: HumanProgram | None = None,
     duration: float = 60.0,
     rate_hz: float = 200.0,
-    control: np.ndarray | None = None,
+    control: ControllerConfig | None = None,
     seed: int = 0,
     disturbance_bar: np.ndarray | None = None,
     pw_bar: float = 3.0,
@@ -197,7 +199,7 @@ def run_workout(
         program: What the user intends; default: a 60 s FP isotonic workout.
         duration: Simulated time [s].
         rate_hz: Control rate [Hz]; the substep rate must be a multiple.
-        control: Controller parameter vector (:func:`pipeline.default_params`).
+        control: Controller; default: Default controller, 1.2 N·m, ``pw_bar``.
         seed: Sensor-noise seed.
         disturbance_bar: (n_ticks, 2) PRV-exit pressure disturbances [bar].
         pw_bar: Working pressure P_w [bar abs].
@@ -214,7 +216,9 @@ def run_workout(
         from app.engine.human import isotonic
 
         program = isotonic(+1, repetitions=8)
-    cp = control if control is not None else cpl.default_params(pw_bar, 1.2, 1, params.vane.torque_per_pa * BAR)
+    control = control or ControllerConfig(controller="default", pw_bar=pw_bar)
+    pw_bar = control.pw_bar
+    cp, fr_est, fz = control.pack()
     x = pl.initial_state(params, 0.0, pw_bar, pw_bar)
     rng = np.random.default_rng(seed)
     noise = rng.standard_normal((n, 4))
@@ -222,10 +226,11 @@ def run_workout(
     log = np.empty((n, len(LOG_COLUMNS)))
     truth = np.empty((n, len(TRUTH_COLUMNS)))
     sc = sn.build_sensor_const(params, dt)
-    _closed_loop(x, k, sc, cp, k.fr, program.t, program.pos, n, n_sub, dt, noise, dist, log, truth)
+    _closed_loop(x, k, sc, cp, fr_est, fz, program.t, program.pos, n, n_sub, dt, noise, dist, log, truth)
     meta = {
         "rig": params.rig, "sample_rate_hz": rate_hz, "p_atm_bar": params.p_atm / BAR,
         "working_pressure_bar": pw_bar, "experiment": "workout", "human": True, "seed": seed,
-        "effects": params.effects.active(),
+        "effects": params.effects.active(), "controller": control.controller, "target_nm": control.target_nm,
+        "pdra": control.pdra, "tdra": control.tdra,
     }
     return WorkoutResult(log, truth, meta)

@@ -319,6 +319,8 @@ def human_torque(
     if kh == 0.0 and dh == 0.0:
         return 0.0
     th, wh = human_target(t, prog_t, prog_pos)
+    if th != th:  # NaN intended angle: the user has let go of the handle
+        return 0.0
     ti = kh * (th - pos) + dh * (wh - vel)
     return min(max(ti, -lim), lim)
 

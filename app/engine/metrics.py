@@ -1,0 +1,73 @@
+"""The thesis's six tracking metrics (4.4–4.7) as pure functions.
+
+All take the sample times ``t`` [s] and the tracking error ``e`` = target −
+measured interaction torque [N·m] over the evaluation window. Integrals use
+the trapezoidal rule on the samples; ITAE weights by the time since the start
+of the window (the thesis evaluates "from convergence, or from t_d").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+METRICS: tuple[str, ...] = ("mae", "iae", "itae", "evar", "rmse", "maxae")
+METRIC_LABELS: dict[str, str] = {
+    "mae": "MAE [N·m]", "iae": "IAE [N·m·s]", "itae": "ITAE [N·m·s²]",
+    "evar": "e_var [N²·m²]", "rmse": "RMSE [N·m]", "maxae": "Max AE [N·m]",
+}
+
+
+def _check(t: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    t = np.asarray(t, dtype=float)
+    e = np.asarray(e, dtype=float)
+    if t.ndim != 1 or t.shape != e.shape:
+        raise ValueError(f"t and e must be 1-D arrays of equal length, got {t.shape} and {e.shape}")
+    if t.size < 2:
+        raise ValueError("an evaluation window needs at least two samples")
+    if np.any(np.diff(t) <= 0):
+        raise ValueError("sample times must be strictly increasing")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(e))):
+        raise ValueError("t and e must be finite")
+    return t, e
+
+
+def mae(t: np.ndarray, e: np.ndarray) -> float:
+    """Mean absolute error [N·m]."""
+    _, e = _check(t, e)
+    return float(np.mean(np.abs(e)))
+
+
+def iae(t: np.ndarray, e: np.ndarray) -> float:
+    """Integral of absolute error ∫|e|dt [N·m·s]."""
+    t, e = _check(t, e)
+    return float(np.trapezoid(np.abs(e), t))
+
+
+def itae(t: np.ndarray, e: np.ndarray) -> float:
+    """Integral of time-weighted absolute error ∫(t − t₀)|e|dt [N·m·s²]."""
+    t, e = _check(t, e)
+    return float(np.trapezoid((t - t[0]) * np.abs(e), t))
+
+
+def evar(t: np.ndarray, e: np.ndarray) -> float:
+    """Error variance (population, ddof = 0) [N²·m²]."""
+    _, e = _check(t, e)
+    return float(np.var(e))
+
+
+def rmse(t: np.ndarray, e: np.ndarray) -> float:
+    """Root-mean-square error [N·m]."""
+    _, e = _check(t, e)
+    return float(np.sqrt(np.mean(e * e)))
+
+
+def maxae(t: np.ndarray, e: np.ndarray) -> float:
+    """Maximum absolute error [N·m]."""
+    _, e = _check(t, e)
+    return float(np.max(np.abs(e)))
+
+
+def all_metrics(t: np.ndarray, e: np.ndarray) -> dict[str, float]:
+    """All six, keyed as in :data:`METRICS`."""
+    return {"mae": mae(t, e), "iae": iae(t, e), "itae": itae(t, e), "evar": evar(t, e),
+            "rmse": rmse(t, e), "maxae": maxae(t, e)}

@@ -1,0 +1,163 @@
+"""Scenarios SC-1–SC-4, metrics, the thesis benchmark and closed-loop behaviour (issue 3)."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from contextlib import redirect_stdout
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from app.engine import metrics as mt
+from app.engine.control.config import ControllerConfig
+from app.engine.human import HumanProgram, isotonic
+from app.engine.scenarios import Case, ScenarioSettings, ablation_cases, main_cases, run_case
+from app.engine.sim import run_workout
+
+
+# ------------------------------------------------------------------ metrics
+def test_metrics_golden_values() -> None:
+    # hand-computed: e = [0, 1, −1, 2] at t = 0, 1, 2, 3 s
+    t = np.array([0.0, 1.0, 2.0, 3.0])
+    e = np.array([0.0, 1.0, -1.0, 2.0])
+    assert mt.mae(t, e) == pytest.approx(1.0)
+    assert mt.iae(t, e) == pytest.approx(0.5 + 1.0 + 1.5)  # trapezoids of |e|
+    assert mt.itae(t, e) == pytest.approx(0.5 * (0 + 1) + 0.5 * (1 + 2) + 0.5 * (2 + 6))  # (t·|e|)
+    assert mt.evar(t, e) == pytest.approx(np.mean((e - 0.5) ** 2))  # 1.25
+    assert mt.rmse(t, e) == pytest.approx(math.sqrt(6.0 / 4.0))
+    assert mt.maxae(t, e) == pytest.approx(2.0)
+    assert set(mt.all_metrics(t, e)) == set(mt.METRICS)
+
+
+def test_metrics_itae_is_relative_to_window_start() -> None:
+    t = np.array([10.0, 11.0])
+    e = np.array([1.0, 1.0])
+    assert mt.itae(t, e) == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize(
+    ("t", "e", "msg"),
+    [([0.0], [1.0], "two samples"), ([0.0, 0.0], [1.0, 1.0], "increasing"), ([0.0, 1.0], [1.0], "equal length"),
+     ([0.0, 1.0], [1.0, float("nan")], "finite")],
+)
+def test_metrics_reject_bad_windows(t: list[float], e: list[float], msg: str) -> None:
+    with pytest.raises(ValueError, match=msg):
+        mt.rmse(np.array(t), np.array(e))
+
+
+# ------------------------------------------------------------------ cases
+def test_case_matrix_follows_spec_section_5() -> None:
+    cases = main_cases()
+    assert len(cases) == 12
+    assert [c.scenario for c in cases].count("SC-1") == 4 and [c.scenario for c in cases].count("SC-3") == 2
+    assert all(not c.pdra and not c.tdra for c in cases if c.scenario == "SC-1")
+    assert all(c.pdra and c.tdra for c in cases if c.scenario != "SC-1")
+    assert all(c.target > 0 for c in cases if c.scenario in ("SC-3", "SC-4"))
+    assert {abs(c.target) for c in cases} == {0.6, 1.2}
+    abl = ablation_cases()
+    assert all(c.ablation for c in abl) and len(abl) == 4
+    assert all(not c.tdra for c in abl if c.scenario == "SC-3") and all(not c.pdra for c in abl if c.scenario == "SC-4")
+
+
+def test_runs_are_reproducible_from_a_seed() -> None:
+    case = Case("SC-4", 1.2, True, True)
+    a = run_case(case, "fuzzy", seed=3)
+    b = run_case(case, "fuzzy", seed=3)
+    c = run_case(case, "fuzzy", seed=4)
+    assert a.metrics == b.metrics
+    assert a.metrics != c.metrics
+    assert a.t_d == pytest.approx(4.0) and a.window[0] == pytest.approx(4.0)
+
+
+def test_bad_scenario_settings_are_rejected() -> None:
+    from app.engine.params import ParameterError
+
+    with pytest.raises(ParameterError, match="t_dist_after"):
+        ScenarioSettings(t_dist_after=50.0)
+    with pytest.raises(ParameterError, match="speed"):
+        ScenarioSettings(speed=-1.0)
+
+
+def test_sc4_disturbance_lowers_chamber_b_without_pdra() -> None:
+    run = run_case(Case("SC-4", 1.2, False, False, ablation=True), "default")
+    t = run.result.column("t")
+    pb = run.result.column("p_b")
+    before = pb[(t > 3.0) & (t < 4.0)].mean()
+    after = pb[(t > 5.0) & (t < 7.0)].mean()
+    assert before - after == pytest.approx(0.4, abs=0.1)
+
+
+@pytest.mark.parametrize("scenario", ["SC-3", "SC-4"])
+@pytest.mark.parametrize("controller", ["default", "pid", "fuzzy"])
+def test_rejection_algorithms_lower_post_disturbance_rmse(scenario: str, controller: str) -> None:
+    # thesis 4.6–4.7: TDRA (SC-3) and PDRA (SC-4) improve every controller
+    on = run_case(Case(scenario, 1.2, True, True), controller)  # type: ignore[arg-type]
+    off = run_case(Case(scenario, 1.2, scenario == "SC-3", scenario == "SC-4", ablation=True),
+                   controller)  # type: ignore[arg-type]
+    assert on.metrics["rmse"] < off.metrics["rmse"]
+
+
+# ------------------------------------------------------------------ intention detection in the loop
+@pytest.mark.parametrize("controller", ["default", "pid", "fuzzy"])
+def test_robot_holds_still_when_the_user_does_not_push(controller: str) -> None:
+    res = run_workout(program=HumanProgram.rest(5.0), duration=5.0,
+                      control=ControllerConfig(controller=controller))  # type: ignore[arg-type]
+    assert (res.column("mode") == 0).all()
+    assert np.abs(res.column("theta_true")).max() < math.radians(0.5)
+    late = res.column("t") > 1.0
+    for ch in ("pa_true", "pb_true"):
+        assert np.abs(res.column(ch)[late] - 3.0).max() < 0.05
+
+
+@pytest.mark.parametrize("controller", ["default", "pid", "fuzzy"])
+def test_robot_stops_within_100_ms_when_the_user_lets_go(controller: str) -> None:
+    t_go = 4.0
+    prog = isotonic(+1, speed=0.3, amplitude=math.radians(120)).let_go(t_go)
+    res = run_workout(program=prog, duration=5.0,
+                      control=ControllerConfig(controller=controller, pdra=True, tdra=True))  # type: ignore[arg-type]
+    t = res.column("t")
+    assert res.column("mode")[(t > 3.0) & (t < t_go)].min() == 1  # moving under control before
+    assert abs(res.column("omega_true")[(t > 3.5) & (t < t_go)]).mean() > 0.1
+    after = t >= t_go + 0.1
+    assert (res.column("mode")[after] == 0).all()
+    assert np.abs(res.column("omega_true")[after]).max() < 0.01
+
+
+# ------------------------------------------------------------------ the benchmark command
+def test_bench_thesis_writes_the_contract(tmp_path: Path) -> None:
+    buf = io.StringIO()
+    with redirect_stdout(buf):
+        assert main(["bench", "thesis", "--out", str(tmp_path), "--json"]) == 0
+    printed = json.loads(buf.getvalue())
+    records = json.loads((tmp_path / "results.json").read_text())
+    assert printed == records
+    main_runs = [r for r in records if not r["ablation"]]
+    assert len(main_runs) == 36 and len(records) == 48
+    for r in records:
+        assert r["scenario"] in ("SC-1", "SC-2", "SC-3", "SC-4")
+        assert r["controller"] in ("default", "pid", "fuzzy")
+        assert isinstance(r["target"], float) and abs(r["target"]) in (0.6, 1.2)
+        assert set(r["metrics"]) == {"mae", "iae", "itae", "evar", "rmse", "maxae"}
+        assert all(math.isfinite(v) and v >= 0 for v in r["metrics"].values())
+        defined = r["scenario"] != "SC-1"
+        if not r["ablation"]:
+            assert r["pdra"] is defined and r["tdra"] is defined
+    # radar charts carry their numbers
+    from PIL import Image
+
+    png = tmp_path / "radar_SC-2_FS_1p2.png"
+    data = json.loads(Image.open(png).text["cwrr:metrics"])  # type: ignore[attr-defined]
+    rec = next(r for r in main_runs if r["scenario"] == "SC-2" and r["target"] == -1.2 and r["controller"] == "pid")
+    assert data["pid"] == pytest.approx(rec["metrics"])
+    assert "rmse" in (tmp_path / "radar_SC-2_FS_1p2.svg").read_text()
+    assert "| SC-4 FP +0.6 |" in (tmp_path / "results.md").read_text()
+    assert (tmp_path / "tracking_SC-4_FP_1p2.png").stat().st_size > 10_000
+
+
+def test_bench_thesis_needs_an_output_dir(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "thesis"]) == 2
+    assert "--out" in capsys.readouterr().err
