@@ -161,3 +161,32 @@ def test_bench_thesis_writes_the_contract(tmp_path: Path) -> None:
 def test_bench_thesis_needs_an_output_dir(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "thesis"]) == 2
     assert "--out" in capsys.readouterr().err
+
+
+def test_switching_controllers_mid_run_is_bumpless_in_the_engine_loop() -> None:
+    from app.engine.control.interaction import InteractionController
+    from app.engine.hardware.sim import SimulatedRig
+    from app.engine.loop import Engine, SimClock
+    from app.engine.params import ParameterError
+
+    clock = SimClock()
+    rig = SimulatedRig(clock, pw_bar=3.0)
+    rig.set_program(isotonic(+1, speed=0.3, amplitude=math.radians(120)))
+    ctl = InteractionController(controller="pid", pdra=True, tdra=True)
+    eng = Engine(rig, ctl, clock, 200.0)
+    rig.activate()
+    za: list[float] = []
+    for k in range(1000):  # 5 s; the user is rotating from t = 1 s
+        if k == 500:
+            ctl.reconfigure(controller="fuzzy")
+        if k == 700:
+            with pytest.raises(ParameterError):
+                ctl.reconfigure(controller="fuzzy", pw_bar=12.0)  # refused, nothing changes
+            assert ctl.config.pw_bar == 3.0 and ctl.config.controller == "fuzzy"
+        eng.run_for(0.005)
+        assert eng.last_command is not None
+        za.append(eng.last_command.z_a)
+    steps = np.abs(np.diff(za))
+    typical = np.percentile(steps[300:480], 95)
+    assert steps[499] <= max(3.0 * typical, 0.05)  # the switch at k = 500 is no larger than normal motion
+    assert ctl.mode == 1 and ctl.internals()["kp_a"] != 0.45  # fuzzy gains in use
