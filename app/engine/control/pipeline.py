@@ -368,15 +368,14 @@ def control_step(
     prf = pr + pc  # Eq 3.24
     # TDRA on the controlled chamber
     zt = 0.0
+    err = cp[P_TARGET] - (tq if mode == 1 else -tq) if mode != 0 else 0.0
     if int(st[S_TMODE]) != mode:
+        # new direction: fresh integral, no derivative kick
         st[S_TI] = 0.0
         st[S_TDF] = 0.0
-        st[S_TEP] = 0.0
+        st[S_TEP] = err
         st[S_TMODE] = mode
-        if mode != 0:
-            st[S_TEP] = cp[P_TARGET] - (tq if mode == 1 else -tq)
     if mode != 0 and cp[P_TDRA] > 0.0:
-        err = cp[P_TARGET] - (tq if mode == 1 else -tq)
         zt = tdra_update(err, st, cp, dt)
     # signal router
     pref_a = pw
