@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from app.engine.control import pipeline as cpl
-from app.engine.control.config import CONTROLLER_H, ControllerConfig, ControllerName
+from app.engine.control.config import ControllerConfig, ControllerName, controller_h
 from app.engine.params import ParameterError, RotaryFriction
 from app.engine.physics.plant import pack_friction
 
@@ -126,13 +126,11 @@ class PRVController:
         self.config = config or ControllerConfig()
         self.cp, _, self.fz = self.config.pack()
         self.state = np.zeros(cpl.NSTATE)
-        self.h = CONTROLLER_H[controller]
+        self.h = controller_h(controller)
 
     def switch(self, controller: ControllerName) -> None:
         """Change controller; the command continues without a bump."""
-        if controller not in CONTROLLER_H:
-            raise ParameterError(f"controller = {controller!r} must be one of {', '.join(CONTROLLER_H)}")
-        self.h = CONTROLLER_H[controller]
+        self.h = controller_h(controller)
 
     def step(self, p_ref: float, p_meas: float, dt: float) -> float:
         """Raw command [z_j]^r [bar abs] (subtract P_atm for the valve's volts)."""

@@ -19,6 +19,17 @@ ControllerName = Literal["default", "pid", "fuzzy"]
 CONTROLLER_H: dict[str, int] = {"default": cpl.H_DEFAULT, "pid": cpl.H_PID, "fuzzy": cpl.H_FUZZY}
 
 
+def controller_h(name: str) -> int:
+    """Switch value h of thesis Fig 3.36 for a controller name.
+
+    Raises:
+        ParameterError: For an unknown name.
+    """
+    if name not in CONTROLLER_H:
+        raise ParameterError(f"controller = {name!r} must be one of {', '.join(CONTROLLER_H)}")
+    return CONTROLLER_H[name]
+
+
 @dataclass(frozen=True)
 class ControllerConfig:
     """Interaction-torque controller of thesis Fig 3.28.
@@ -51,8 +62,7 @@ class ControllerConfig:
     def __post_init__(self) -> None:
         check_working_pressure(self.pw_bar)
         check_range("target_nm", self.target_nm, -5.0, 5.0, unit="N·m")
-        if self.controller not in CONTROLLER_H:
-            raise ParameterError(f"controller = {self.controller!r} must be one of {', '.join(CONTROLLER_H)}")
+        controller_h(self.controller)
 
     @property
     def h(self) -> int:
