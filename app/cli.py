@@ -79,6 +79,118 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _progress_printer(enabled: bool):  # type: ignore[no-untyped-def]
+    last = [""]
+
+    def show(pr: object) -> None:
+        msg = getattr(pr, "message", "")
+        if enabled and msg and msg != last[0]:
+            print(f"  {msg}", file=sys.stderr, flush=True)
+            last[0] = msg
+
+    return show if enabled else None
+
+
+def _identify(args: argparse.Namespace) -> int:
+    from app.engine.ident import runner
+    from app.engine.ident.gui_rules import MSG_N, MSG_PW, LinearInputs, RotaryInputs
+    from app.engine.params import ParameterError
+
+    # the thesis GUIs' rules and messages, before anything runs
+    if args.rig == "seal":
+        from pathlib import Path
+
+        from app.engine.ident.seal import fit_seals, seal_plot
+
+        if not args.files:
+            raise ParameterError("identify seal: give one or more data files")
+        result = fit_seals([Path(f) for f in args.files])
+        if args.out:
+            d = Path(args.out)
+            d.mkdir(parents=True, exist_ok=True)
+            (d / "seal_friction.json").write_text(json.dumps(result, indent=1))
+            if not args.no_plots:
+                seal_plot(result, d / "seal_friction.png")
+        print(json.dumps(result) if args.json else json.dumps(result["seals"], indent=1))
+        return 0
+    if args.ns < 30 or args.nd < 30:
+        raise ParameterError(f"{'ns' if args.ns < 30 else 'nd'}: {MSG_N}")
+    out: dict[str, object]
+    if args.rig == "rotary":
+        if not (1.0 <= args.pw <= 8.0):
+            raise ParameterError(f"pw_bar: {MSG_PW}")
+        RotaryInputs(ns=args.ns, nd=args.nd, pw_bar=args.pw)
+        res, run = runner.identify_rotary_sim(args.pw, args.ns, args.nd, seed=args.seed,
+                                              on_progress=_progress_printer(args.progress))
+        out = res.contract()
+        detail = {"ccw": res.ccw.as_dict(), "cw": res.cw.as_dict()}
+    elif args.rig == "linear":
+        from app.engine.params import PlantParams
+
+        cyl = PlantParams.linear_rig(args.cylinder).linear
+        assert cyl is not None
+        LinearInputs(cyl.stroke * 1e3, cyl.bore * 1e3, cyl.rod * 1e3, args.ns, args.nd)
+        res, run = runner.identify_linear_sim(args.cylinder, args.ns, args.nd, seed=args.seed,
+                                              on_progress=_progress_printer(args.progress))
+        out = res.contract()
+        detail = {"extension": res.extension.as_dict(), "retraction": res.retraction.as_dict(),
+                  "moving_mass_kg": res.moving_mass_kg}
+    else:
+        from app.engine.ident.sweep import save_table, sweep_rotary_sim
+
+        pressures = [float(x) for x in args.pressures.split(",")]
+        for pw in pressures:
+            if not (1.0 <= pw <= 8.0):
+                raise ParameterError(f"pw_bar: {MSG_PW}")
+        import time
+
+        w0 = time.perf_counter()
+        sw = sweep_rotary_sim(pressures, args.ns, args.nd, seed=args.seed)
+        wall = time.perf_counter() - w0
+        out = sw.as_dict()["table"]
+        detail = sw.as_dict()
+        detail["timing"] = {"wall_seconds": wall, "rig_seconds": sum(p.sim_seconds for p in sw.points)}
+        if args.table:
+            save_table(sw.to_table(), args.table)
+        if args.out:
+            from pathlib import Path
+
+            from app.engine.ident.plots import friction_surface_plot
+
+            d = Path(args.out)
+            d.mkdir(parents=True, exist_ok=True)
+            (d / "sweep.json").write_text(json.dumps(detail, indent=1, default=float))
+            if not args.no_plots:
+                friction_surface_plot(sw.to_table(), d / "friction_surface.png")
+        print(f"sweep: {detail['timing']['rig_seconds']:.0f} s of rig time simulated in {wall:.1f} s",
+              file=sys.stderr)
+        if args.json:
+            print(json.dumps(out))
+        else:
+            print(json.dumps(detail, indent=1, default=float))
+        return 0
+    if args.out:
+        from pathlib import Path
+
+        d = Path(args.out)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "result.json").write_text(json.dumps({"contract": out, "detail": detail,
+                                                   "data": run.procedure.data.as_dict(),
+                                                   "sim_seconds": run.summary.sim_seconds,
+                                                   "wall_seconds": run.summary.wall_seconds}, default=float))
+        if not args.no_plots:
+            from app.engine.ident.plots import friction_curve_plot
+
+            friction_curve_plot(run.procedure.data, res, d / "friction_curve.png")
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(json.dumps(detail, indent=1, default=float))
+        print(f"rig time {run.summary.sim_seconds:.0f} s, computed in {run.summary.wall_seconds:.1f} s",
+              file=sys.stderr)
+    return 0
+
+
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -111,6 +223,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     b.add_argument("--no-plots", action="store_true", help="thesis: skip the figures")
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=_bench)
+    i = sub.add_parser("identify", help="automated friction identification on the simulated rig (thesis 3.2.4)")
+    i.add_argument("rig", choices=("rotary", "linear", "sweep", "seal"),
+                   help="seal: fit pressure-dependent Coulomb + viscous friction to constant-speed strokes "
+                        "(Zillen format: t ms, laser V, p V, F V, x mm, p bar gauge, F N)")
+    i.add_argument("files", nargs="*", help="seal: data files")
+    i.add_argument("--pw", type=float, default=3.0, help="rotary: working pressure P_w [bar abs], 1–8")
+    i.add_argument("--pressures", default="1,2,3,4,5,6", help="sweep: working pressures [bar abs], comma-separated")
+    i.add_argument("--cylinder", choices=("C1", "C2", "C3"), default="C3", help="linear: thesis cylinder")
+    i.add_argument("--ns", type=int, default=100, help="static experiments per direction (>= 30)")
+    i.add_argument("--nd", type=int, default=100, help="dynamic experiments per direction (>= 30)")
+    i.add_argument("--seed", type=int, default=0)
+    i.add_argument("--out", default="", help="write result.json (per-test data) and the friction plot here")
+    i.add_argument("--table", default="", help="sweep: write the controllers' friction table (JSON) here")
+    i.add_argument("--no-plots", action="store_true")
+    i.add_argument("--progress", action="store_true", help="print 'experiment k of N' to stderr")
+    i.add_argument("--json", action="store_true", help="print only the contract JSON")
+    i.set_defaults(fn=_identify)
     v = sub.add_parser("serve", help="start the lab station server on the simulated plant")
     v.add_argument("--host", default="127.0.0.1")
     v.add_argument("--port", type=int, default=8000)

@@ -58,6 +58,11 @@ class HumanProgram:
         return HumanProgram(t, pos)
 
     @staticmethod
+    def absent() -> HumanProgram:
+        """Nobody holds the handle (identification runs): no interaction torque."""
+        return HumanProgram(np.array([0.0, 1.0]), np.array([np.nan, np.nan]))
+
+    @staticmethod
     def rest(duration: float = 1.0) -> HumanProgram:
         """The user holds the handle at neutral and does nothing."""
         return HumanProgram(np.array([0.0, duration]), np.array([0.0, 0.0]))

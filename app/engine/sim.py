@@ -52,6 +52,9 @@ class Simulator:
         self.out = np.zeros(pl.NO)
         self._sensor_state = np.zeros(sn.NS)
         self._sc_cache: dict[float, Any] = {}
+        self._noise = np.empty((0, 4))
+        self._noise_i = 0
+        self._meas = np.empty(sn.NM)
 
     @property
     def substep(self) -> float:
@@ -93,6 +96,25 @@ class Simulator:
                    self._sensor_state, dt, m)
         return m
 
+    def advance_and_measure(self, t: float, dt: float) -> np.ndarray:
+        """Advance to ``t`` [s], then sample the sensors — one compiled call.
+
+        Same result as :meth:`advance_to` then :meth:`measure` (the noise comes
+        from the same generator, drawn in blocks); this is the per-period path
+        of the simulated backend, where call overhead dominates.
+        """
+        sc = self._sc_cache.get(dt)
+        if sc is None:
+            sc = self._sc_cache[dt] = sn.build_sensor_const(self.params, dt)
+        if self._noise_i >= self._noise.shape[0]:
+            self._noise = self.rng.standard_normal((1024, 4))
+            self._noise_i = 0
+        n = max(0, int(round((t - self.t) / self.kernel.h)))
+        self.t = _advance_measure(self.t, self.x, self.cmd, self.kernel, n, self.program.t, self.program.pos,
+                                  self.out, sc, self._noise[self._noise_i], self._sensor_state, dt, self._meas)
+        self._noise_i += 1
+        return self._meas
+
     def true_interaction(self) -> float:
         """User torque at the current state [N·m]."""
         k = self.kernel
@@ -107,6 +129,22 @@ class Simulator:
             "p_a_bar": pa / BAR, "p_b_bar": pb / BAR, "p_s_bar": float(self.x[pl.I_PS]) / BAR,
             "ti": self.true_interaction(), "tf": float(self.out[pl.O_TF]),
         }
+
+
+@njit(cache=True, error_model="numpy")
+def _advance_measure(
+    t: float, x: np.ndarray, cmd: np.ndarray, k: Any, n: int, prog_t: np.ndarray, prog_pos: np.ndarray,
+    out: np.ndarray, sc: Any, noise: np.ndarray, st: np.ndarray, dt: float, meas: np.ndarray,
+) -> float:
+    work = np.empty(5 * pl.NN)
+    jac = np.empty((pl.NN, pl.NN))
+    for i in range(n):
+        pl.step(t + i * k.h, x, cmd, k, prog_t, prog_pos, out, work, jac)
+    t += n * k.h
+    pa, pb = pl.chamber_pressures(x, k)
+    ti = pl.human_torque(t, x[pl.I_POS], x[pl.I_VEL], prog_t, prog_pos, k.hum_k, k.hum_d, k.hum_lim)
+    sn.measure(pa, pb, x[pl.I_PS], x[pl.I_POS], ti, sc, noise, st, dt, meas)
+    return t
 
 
 @njit(cache=True, error_model="numpy")

@@ -61,12 +61,12 @@ class Command:
 
     def clipped(self, z_max: float = 10.0) -> Command:
         """The command within the valves' input ranges (NaN → safe value)."""
-
-        def c(v: float, lo: float, hi: float, safe: float) -> float:
-            return safe if not math.isfinite(v) else min(max(v, lo), hi)
-
-        return Command(c(self.z_a, 0.0, z_max, 0.0), c(self.z_b, 0.0, z_max, 0.0),
-                       c(self.u_a, 0.0, 10.0, 0.0), c(self.u_b, 0.0, 10.0, 10.0))
+        za, zb, ua, ub = self.z_a, self.z_b, self.u_a, self.u_b
+        if 0.0 <= za <= z_max and 0.0 <= zb <= z_max and 0.0 <= ua <= 10.0 and 0.0 <= ub <= 10.0:
+            return self  # the common case on the hot path: nothing to clip (NaN fails every comparison)
+        isf = math.isfinite
+        return Command(min(max(za, 0.0), z_max) if isf(za) else 0.0, min(max(zb, 0.0), z_max) if isf(zb) else 0.0,
+                       min(max(ua, 0.0), 10.0) if isf(ua) else 0.0, min(max(ub, 0.0), 10.0) if isf(ub) else 10.0)
 
 
 SAFE_COMMAND = Command(0.0, 0.0, 0.0, 10.0)

@@ -80,8 +80,7 @@ class SimulatedRig(HardwareInterface):
 
     def read(self) -> Measurement:
         """Integrate up to now, then sample."""
-        self.sim.advance_to(self.clock.now() - self._t0)
-        m = self.sim.measure(self.period)
+        m = self.sim.advance_and_measure(self.clock.now() - self._t0, self.period)
         return Measurement(self.sim.t, float(m[sn.M_PA]), float(m[sn.M_PB]), float(m[sn.M_PS]),
                            float(m[sn.M_POS]), float(m[sn.M_VEL]), float(m[sn.M_TQ]))
 

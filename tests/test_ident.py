@@ -1,0 +1,265 @@
+"""Issue 4: automated identification (rotary/linear friction, GUI rules, seal refdata).
+
+Truths are the simulator's parameters: Table 4.2 (rotary, SPEC §2) and
+Tables 4.5–4.6 (linear C1/C3).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.cli import main as cli_main
+from app.engine import tables
+from app.engine.ident import gui_rules as gr
+from app.engine.ident.fitting import fit_friction, runs_test_p, stribeck
+from app.engine.ident.procedure import Procedure
+from app.engine.ident.rotary import RotaryFrictionProcedure
+from app.engine.ident.runner import identify_linear_sim, identify_rotary_sim, rotary_inputs_for, simulate
+from app.engine.params import ParameterError, PlantParams
+
+REFDATA = Path(__file__).resolve().parents[2] / "shared" / "refdata"
+
+
+# ----------------------------------------------------------------- GUI rules (Appendix 1–2, SPEC §6)
+
+
+def test_rotary_form_unlocks_in_order_with_the_thesis_messages() -> None:
+    f = gr.GuidedForm("rotary")
+    assert f.message == "Please enter the required parameters! Start with range of motion (ROM)."
+    assert f.editable == "rom_deg"
+    r = f.enter("vane_area_mm2", 855.0)  # locked: ROM first
+    assert not r.ok and "locked" in r.message and f.values == {}
+    assert f.enter("rom_deg", 400.0).message == "Please enter a reasonable value! It should be between 0-360 degrees."
+    assert f.enter("rom_deg", 270.0).ok and f.valid["rom_deg"]
+    assert f.enter("vane_area_mm2", 0.0).message == "Please enter a reasonable value!"
+    assert f.enter("vane_area_mm2", 855.0).ok
+    assert f.enter("radius_mm", -1.0).message == "Please enter a reasonable value!"
+    assert f.enter("radius_mm", 23.0).ok
+    assert f.enter("ns", 29).message == "Value cannot be lower than 30, login new value!"
+    assert f.enter("ns", 30).ok
+    assert f.enter("nd", 12).message == "Value cannot be lower than 30, login new value!"
+    assert f.enter("nd", 100).ok
+    assert not f.buttons()["connect"]
+    assert f.enter("pw_bar", 9.0).message == "Working pressure can be min. 1 bar and max. 8 bar!"
+    assert f.enter("pw_bar", 0.5).message == "Working pressure can be min. 1 bar and max. 8 bar!"
+    r = f.enter("pw_bar", 3.0)
+    assert r.ok and r.message == "Parameters has been defined successfully, please connect to proceed."
+    assert f.buttons() == {"connect": True, "disconnect": False, "start": False, "stop": False, "estimate": False,
+                           "clear": True}
+    with pytest.raises(ParameterError):
+        f.press("estimate")  # only after the experiments
+    f.press("connect")
+    f.press("start")
+    assert f.buttons()["stop"] and not f.buttons()["clear"]
+    f.finish()
+    assert f.buttons()["estimate"]
+    inp = f.inputs()
+    assert isinstance(inp, gr.RotaryInputs) and inp.ns == 30 and inp.pw_bar == 3.0
+    f.press("clear")
+    assert f.values == {} and f.editable == "rom_deg" and f.phase == "editing"
+
+
+def test_linear_form_refuses_rod_not_smaller_than_piston() -> None:
+    f = gr.GuidedForm("linear")
+    assert f.message == "Please enter the input parameters on the left!"
+    f.enter("stroke_mm", 300)
+    f.enter("piston_diameter_mm", 32)
+    r = f.enter("rod_diameter_mm", 32)
+    assert not r.ok and r.message == "Please enter correct value!" and "rod_diameter_mm" not in f.values
+    assert f.enter("rod_diameter_mm", 12).ok
+    assert f.enter("ns", 10).message == "Value cannot be lower than 30, login new value!"
+    f.enter("ns", 30)
+    assert f.enter("nd", 30).message == "Parameters are entered successfully, system is ready for connection."
+    assert isinstance(f.inputs(), gr.LinearInputs)
+
+
+@pytest.mark.parametrize(("kw", "msg"), [
+    ({"ns": 29}, gr.MSG_N), ({"nd": 0}, gr.MSG_N), ({"pw_bar": 8.5}, gr.MSG_PW), ({"rom_deg": 0.0}, gr.MSG_ROM),
+    ({"vane_area_mm2": -1.0}, gr.MSG_REASONABLE), ({"ns": 30.5}, gr.MSG_N),
+])
+def test_rotary_inputs_refused_with_gui_message(kw: dict[str, float], msg: str) -> None:
+    with pytest.raises(ParameterError, match=msg.replace("!", r"\!").replace("(", r"\(")):
+        gr.RotaryInputs(**kw)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("argv", [["identify", "rotary", "--ns", "29"], ["identify", "rotary", "--pw", "9"],
+                                  ["identify", "linear", "--nd", "12"]])
+def test_cli_invalid_inputs_exit_2_with_gui_message(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err
+    assert gr.MSG_N in err or gr.MSG_PW in err
+
+
+# ----------------------------------------------------------------- fitting round trip
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_fit_recovers_known_stribeck_parameters(sign: float) -> None:
+    """Synthetic data from known parameters, with speeds spanning the Stribeck region."""
+    rng = np.random.default_rng(0)
+    fs, fc, vs, b = 1.3 * sign, 0.6 * sign, 0.8 * sign, 0.15
+    w = sign * rng.uniform(0.1, 8.0, 80)
+    f = stribeck(w, fs, fc, vs, b) + rng.normal(0, 0.01, w.size)
+    st = fs + rng.normal(0, 0.02, 60)
+    fit = fit_friction(st, w, f, "positive" if sign > 0 else "negative", (sign, sign, 2.0), 1.0, 2.0)
+    assert fit.fs == pytest.approx(fs, rel=0.02)
+    for name, truth, got in (("fc", fc, fit.fc), ("vs", vs, fit.vs), ("b", b, fit.b)):
+        assert fit.ci[name].contains(truth), (name, truth, fit.ci[name])
+        assert got == pytest.approx(truth, rel=0.1)
+    assert fit.choice is not None and fit.choice.selected == "stribeck"
+
+
+def test_model_selection_prefers_coulomb_viscous_when_there_is_no_stiction_peak() -> None:
+    rng = np.random.default_rng(1)
+    v = rng.uniform(0.05, 1.0, 60)
+    f = 2.0 + 20.0 * v + rng.normal(0, 0.2, v.size)
+    st = 2.0 + rng.normal(0, 0.2, 40)  # static level equal to the Coulomb level
+    fit = fit_friction(st, v, f, "positive", (5.0, 0.1, 100.0), 0.1, 100.0, with_ci=False)
+    assert fit.choice is not None and fit.choice.selected == "coulomb_viscous"
+    assert fit.choice.cv_fc == pytest.approx(2.0, abs=0.15)
+
+
+def test_runs_test_flags_systematic_misfit() -> None:
+    assert runs_test_p(np.tile([1.0, -1.0], 30)) > 0.5
+    assert runs_test_p(np.r_[np.ones(30), -np.ones(30)]) < 1e-3
+
+
+# ----------------------------------------------------------------- procedures on the simulator
+
+
+def test_rotary_identification_single_pressure_recovers_table_4_2() -> None:
+    """P_w = 3 bar, N_s = N_d = 30 (the GUI minimum): T_s, T_c within 5%, B within 10%."""
+    res, run = identify_rotary_sim(3.0, 30, 30, seed=3)
+    j = 2  # the 3 bar column
+    assert run.summary.state == "finished"
+    assert res.ccw.fs == pytest.approx(tables.FRICTION_TS_CCW[j], rel=0.05)
+    assert res.ccw.fc == pytest.approx(tables.FRICTION_TC_CCW[j], rel=0.05)
+    assert res.ccw.b == pytest.approx(tables.FRICTION_B_CCW[j], rel=0.10)
+    assert res.cw.fs == pytest.approx(tables.FRICTION_TS_CW[j], rel=0.05)
+    assert res.cw.fc == pytest.approx(tables.FRICTION_TC_CW[j], rel=0.05)
+    assert res.cw.b == pytest.approx(tables.FRICTION_B_CW[j], rel=0.10)
+    # thesis sign conventions: CW values negative except B
+    assert res.cw.fs < 0 and res.cw.fc < 0 and res.cw.vs < 0 and res.cw.b > 0
+    for f, truth in ((res.ccw, tables.FRICTION_WS_CCW[j]), (res.cw, tables.FRICTION_WS_CW[j])):
+        assert f.vs == pytest.approx(truth, rel=0.25) or f.ci["vs"].contains(truth)
+    # per-test data kept: N_s static and N_d dynamic tests per direction
+    d = run.procedure.data
+    assert len(d.static) == 60 and len(d.dynamic) == 60
+
+
+class _Recorder:
+    def __init__(self) -> None:
+        self.rows: list[tuple[float, ...]] = []
+
+    def append(self, row: tuple[float, ...]) -> None:
+        self.rows.append(row)
+
+
+def test_cancel_vents_the_rig_and_keeps_the_data_so_far() -> None:
+    params = PlantParams()
+    proc = RotaryFrictionProcedure(rotary_inputs_for(params, 4.0, 30, 30), seed=0)
+    seen: list[str] = []
+
+    def on_progress(pr: object) -> None:
+        seen.append(getattr(pr, "message", ""))
+        if proc.progress.done_tests >= 3:
+            proc.cancel()
+
+    rec = _Recorder()
+    run = simulate(proc, params, 500.0, recorder=rec, on_progress=on_progress)
+    assert run.summary.state == "cancelled"
+    assert 3 <= len(proc.data.static) < 60
+    assert any("experiment 1 of 30" in m for m in seen)
+    log = np.asarray(rec.rows)
+    # vented: the last 0.2 s commands both PRVs to 0 V and the chambers reach atmosphere
+    assert np.all(log[-100:, 1:3] == 0.0)
+    assert log[-1, 5] < 1.15 and log[-1, 6] < 1.15
+
+
+def test_a_failing_script_still_vents() -> None:
+    class Boom(Procedure):
+        def script(self):  # type: ignore[no-untyped-def]
+            from app.engine.hardware.base import Command
+
+            yield from self.hold(Command(3.0, 3.0, 0.0, 10.0), 0.2)
+            raise RuntimeError("sensor lost")
+
+    run = simulate(Boom(), PlantParams(), 500.0)
+    assert run.summary.state == "failed" and "sensor lost" in run.procedure.progress.message
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cyl", ["C1", "C3"])
+def test_linear_identification_recovers_tables_4_5_4_6(cyl: str) -> None:
+    res, _run = identify_linear_sim(cyl, 100, 100, seed=0)
+    t = tables.LINEAR_FRICTION[cyl]
+    report = {k: (getattr(res.extension, k.lower()), t[k][0]) for k in ("Fs", "Fc", "B")}
+    report |= {k + "_r": (getattr(res.retraction, k.lower()), t[k][1]) for k in ("Fs", "Fc", "B")}
+    print(json.dumps(report))
+    for fit, i in ((res.extension, 0), (res.retraction, 1)):
+        assert fit.fs == pytest.approx(t["Fs"][i], rel=0.05 if cyl == "C3" else 0.15)
+        assert fit.fc == pytest.approx(t["Fc"][i], rel=0.05 if cyl == "C3" else 0.12)
+        assert fit.b == pytest.approx(t["B"][i], rel=0.10)
+    assert res.contract()["extension"]["model"] in ("stribeck", "coulomb_viscous")
+
+
+@pytest.mark.slow
+def test_rotary_sweep_recovers_table_4_2_and_feeds_the_controller(tmp_path: Path) -> None:
+    """SPEC §2 truth at P_w = 1…6, N_s = N_d = 100 (issue 4's acceptance test)."""
+    from app.engine.control.config import ControllerConfig
+    from app.engine.ident.sweep import load_table, save_table, sweep_rotary_sim
+    from app.engine.sim import run_workout
+
+    sw = sweep_rotary_sim([1, 2, 3, 4, 5, 6], 100, 100, seed=0)
+    tab = sw.to_table()
+    truth = {"ts_ccw": tables.FRICTION_TS_CCW, "tc_ccw": tables.FRICTION_TC_CCW, "b_ccw": tables.FRICTION_B_CCW,
+             "ts_cw": tables.FRICTION_TS_CW, "tc_cw": tables.FRICTION_TC_CW, "b_cw": tables.FRICTION_B_CW}
+    tol = {"ts": 0.05, "tc": 0.05, "b": 0.10}
+    for k, ref in truth.items():
+        got = np.asarray(getattr(tab, k))
+        err = np.abs(got - ref) / np.abs(ref)
+        assert np.all(err <= tol[k[:2]]), (k, got, ref)
+    for p, (wc, ww) in zip(sw.points, zip(tables.FRICTION_WS_CCW, tables.FRICTION_WS_CW, strict=True), strict=True):
+        for f, truth_ws in ((p.result.ccw, wc), (p.result.cw, ww)):
+            assert abs(f.vs - truth_ws) <= 0.25 * abs(truth_ws) or f.ci["vs"].contains(truth_ws)
+    path = tmp_path / "friction.json"
+    save_table(tab, path)
+    back = load_table(path)
+    assert back == tab
+    res = run_workout(control=ControllerConfig(controller="pid", friction=back), duration=10.0)
+    assert np.all(np.isfinite(res.log))
+
+
+# ----------------------------------------------------------------- real refdata
+
+
+@pytest.mark.skipif(not (REFDATA / "seal_friction").is_dir(), reason="refdata not present")
+def test_seal_friction_refdata_fit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Zillen's real seal data: Coulomb friction rises with pressure for every seal."""
+    files = sorted(str(p) for p in (REFDATA / "seal_friction").glob("*.csv"))
+    assert cli_main(["identify", "seal", *files, "--json", "--out", str(tmp_path)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    seals = out["seals"]
+    assert {"O-ring", "X-ring257", "NAPN", "PK", "KDN"} <= set(seals)
+    for name, s in seals.items():
+        assert s["fc_per_bar"] > 0, name  # pressure energises the seal
+        assert all(0 < fc < 40 for fc in s["fc"]), name
+    assert (tmp_path / "seal_friction.png").stat().st_size > 10_000
+
+
+def test_seal_loader_refuses_malformed_files(tmp_path: Path) -> None:
+    from app.engine.ident.seal import load_zillen
+
+    p = tmp_path / "bad_1bar.csv"
+    p.write_text("1 2 3\n4 5 6\n")
+    with pytest.raises(ParameterError, match="expected 7 columns"):
+        load_zillen(p)
+    p.write_text("\n".join(" ".join(["1"] * 7) for _ in range(60)))
+    with pytest.raises(ParameterError, match="not strictly increasing"):
+        load_zillen(p)
+    assert math.isfinite(1.0)
