@@ -263,3 +263,24 @@ def test_seal_loader_refuses_malformed_files(tmp_path: Path) -> None:
     with pytest.raises(ParameterError, match="not strictly increasing"):
         load_zillen(p)
     assert math.isfinite(1.0)
+
+
+@pytest.mark.parametrize("pw", [1.0, 5.4, 6.0])
+def test_open_loop_validation_predicts_chamber_pressure(pw: float) -> None:
+    """Thesis 4.2.1 open loop: P_a predicted from the friction table within 2.5 % (thesis: max 2.5 %)."""
+    from app.engine.ident.rotary import OpenLoopValidation
+
+    params = PlantParams()
+    proc = OpenLoopValidation(rotary_inputs_for(params, pw, 30, 30), n_tests=6, seed=7)
+    simulate(proc, params, 500.0, seed=7)
+    rep = proc.report(params.friction)
+    assert len(rep["runs"]) >= 8
+    assert rep["max_abs_error_pct"] < 2.5, rep
+    # a wrong table is caught: friction doubled → errors well above the thesis's 2.5 %
+    from dataclasses import replace
+
+    wrong = replace(params.friction, tc_ccw=tuple(2 * v for v in params.friction.tc_ccw),
+                    ts_ccw=tuple(2 * v for v in params.friction.ts_ccw),
+                    tc_cw=tuple(2 * v for v in params.friction.tc_cw),
+                    ts_cw=tuple(2 * v for v in params.friction.ts_cw))
+    assert proc.report(wrong)["max_abs_error_pct"] > 5.0

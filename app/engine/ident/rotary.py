@@ -106,6 +106,8 @@ class DynamicTest:
     n_samples: int
     t_start: float
     t_end: float
+    p_a: float = math.nan
+    p_b: float = math.nan
 
 
 @dataclass
@@ -252,7 +254,7 @@ class RotaryFrictionProcedure(Procedure):
         z_drive = self.z_w + 0.48 + spread * float(self.rng.random())
         sgn = 1.0 if ccw else -1.0
         drive = self.cmd(z_drive, self.z_w) if ccw else self.cmd(self.z_w, z_drive)
-        w_sum = w_sq = tq_sum = 0.0
+        w_sum = w_sq = tq_sum = pa_sum = pb_sum = 0.0
         n = 0
         t0 = self.meas.t
         t_end = t0 + self.run_timeout_s
@@ -270,11 +272,14 @@ class RotaryFrictionProcedure(Procedure):
                 w_sum += w
                 w_sq += w * w
                 tq_sum += self.torque()
+                pa_sum += self.meas.p_a
+                pb_sum += self.meas.p_b
                 n += 1
         if n >= 2:
             mean_w = w_sum / n
             sd = math.sqrt(max(w_sq / n - mean_w * mean_w, 0.0))
-            rec = DynamicTest(direction, self.progress.k, z_drive, mean_w, tq_sum / n, sd, n, t0, self.meas.t)
+            rec = DynamicTest(direction, self.progress.k, z_drive, mean_w, tq_sum / n, sd, n, t0, self.meas.t,
+                              pa_sum / n, pb_sum / n)
         else:
             rec = DynamicTest(direction, self.progress.k, z_drive, math.nan, math.nan, math.nan, n, t0, self.meas.t)
         self.data.dynamic.append(rec)
@@ -338,3 +343,63 @@ class RotaryFrictionEstimator:
             ps.append(f.curve(w[ok]))
         y, p = np.concatenate(ys), np.concatenate(ps)
         return float(1.0 - np.sum((y - p) ** 2) / np.sum((y - y.mean()) ** 2))
+
+
+class OpenLoopValidation(RotaryFrictionProcedure):
+    """Open-loop, load-free friction validation (thesis 4.2.1, Figures 4.13–4.15).
+
+    Both chambers at P_w, one raised to a random level (the dynamic tests'
+    Eq 3.16–3.17 levels, PRVs under their own built-in controller); at the
+    steady speed the driving chamber's pressure is predicted from the
+    friction model, P^t = P_counter + T_f(ω)/(A_v·r), and compared with the
+    measured one. Run with a different seed from the identification, these
+    tests are held out from the fit.
+
+    Args:
+        inputs: GUI inputs (only geometry, ROM and P_w are used).
+        n_tests: Runs per direction.
+        seed: Seed of the random levels.
+        p_atm_bar: Atmospheric pressure [bar abs].
+    """
+
+    name = "open_loop_validation"
+
+    def __init__(self, inputs: RotaryInputs, n_tests: int = 10, seed: int = 100, p_atm_bar: float = 1.01325) -> None:
+        super().__init__(inputs, seed=seed, p_atm_bar=p_atm_bar)
+        self.n_tests = n_tests
+        self.progress.total_tests = 2 * n_tests
+
+    def script(self) -> Script:
+        """CCW then CW runs."""
+        for direction in ("ccw", "cw"):
+            self.begin(f"validation {direction.upper()}", self.n_tests)
+            for _ in range(self.n_tests):
+                self.next_test()
+                yield from self.dynamic_test(direction)
+                self.test_done()
+
+    def report(self, table: Any) -> dict[str, Any]:
+        """Predicted vs measured driving-chamber pressure per run, with % error.
+
+        Args:
+            table: :class:`~app.engine.params.RotaryFriction` under test.
+        """
+        from app.engine.ident.fitting import stribeck
+
+        ccw, cw = table.at(self.inputs.pw_bar)
+        rows: list[dict[str, Any]] = []
+        for d in self.data.dynamic:
+            if not math.isfinite(d.omega):
+                continue
+            side = ccw if d.direction == "ccw" else cw
+            tf = float(stribeck(np.array([d.omega]), side.fs, side.fc, side.vs, side.b)[0])
+            if d.direction == "ccw":
+                meas, pred = d.p_a, d.p_b + tf / self.inputs.torque_per_bar
+            else:
+                meas, pred = d.p_b, d.p_a - tf / self.inputs.torque_per_bar
+            rows.append({"direction": d.direction, "omega": d.omega, "p_measured_bar": meas,
+                         "p_predicted_bar": pred, "error_pct": 100.0 * (pred - meas) / meas})
+        errs = np.abs(np.array([float(r["error_pct"]) for r in rows]))
+        return {"pw_bar": self.inputs.pw_bar, "runs": rows,
+                "max_abs_error_pct": float(errs.max()) if errs.size else math.nan,
+                "mean_abs_error_pct": float(errs.mean()) if errs.size else math.nan}
