@@ -6,9 +6,11 @@ Tables 4.5–4.6 (linear C1/C3).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -193,19 +195,41 @@ def test_a_failing_script_still_vents() -> None:
     assert run.summary.state == "failed" and "sensor lost" in run.procedure.progress.message
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("cyl", ["C1", "C3"])
-def test_linear_identification_recovers_tables_4_5_4_6(cyl: str) -> None:
-    res, _run = identify_linear_sim(cyl, 100, 100, seed=0)
+@functools.lru_cache(maxsize=2)
+def _linear(cyl: str) -> Any:
+    return identify_linear_sim(cyl, 100, 100, seed=0)[0]
+
+
+def _check_linear(cyl: str) -> None:
+    res = _linear(cyl)
     t = tables.LINEAR_FRICTION[cyl]
-    report = {k: (getattr(res.extension, k.lower()), t[k][0]) for k in ("Fs", "Fc", "B")}
-    report |= {k + "_r": (getattr(res.retraction, k.lower()), t[k][1]) for k in ("Fs", "Fc", "B")}
-    print(json.dumps(report))
     for fit, i in ((res.extension, 0), (res.retraction, 1)):
-        assert fit.fs == pytest.approx(t["Fs"][i], rel=0.05 if cyl == "C3" else 0.15)
-        assert fit.fc == pytest.approx(t["Fc"][i], rel=0.05 if cyl == "C3" else 0.12)
+        assert fit.fs == pytest.approx(t["Fs"][i], rel=0.05)
+        assert fit.fc == pytest.approx(t["Fc"][i], rel=0.05)
         assert fit.b == pytest.approx(t["B"][i], rel=0.10)
     assert res.contract()["extension"]["model"] in ("stribeck", "coulomb_viscous")
+
+
+@pytest.mark.slow
+def test_linear_identification_recovers_table_4_6_c3() -> None:
+    """C3 (DSBC-32-300): F_s, F_c within 5 %, B within 10 % of Table 4.6."""
+    _check_linear("C3")
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known disagreement (README): on the 25 mm C1 the simulated PRV's "
+                   "≈0.05 bar pressure steps are half of F_s; F_s comes out ≈ 6–9 % high, F_c ≈ 8 % off")
+def test_linear_identification_recovers_table_4_5_c1() -> None:
+    """C1 (DSNUP-25-225): the issue's 5 % criterion, not met yet."""
+    _check_linear("C1")
+
+
+def test_linear_c1_viscous_coefficient_within_10_percent() -> None:
+    """What C1 does meet: B within 10 % both ways (N = 30 for speed)."""
+    res, _ = identify_linear_sim("C1", 30, 30, seed=0, with_ci=False)
+    t = tables.LINEAR_FRICTION["C1"]
+    assert res.extension.b == pytest.approx(t["B"][0], rel=0.10)
+    assert res.retraction.b == pytest.approx(t["B"][1], rel=0.10)
 
 
 @pytest.mark.slow
@@ -284,3 +308,19 @@ def test_open_loop_validation_predicts_chamber_pressure(pw: float) -> None:
                     tc_cw=tuple(2 * v for v in params.friction.tc_cw),
                     ts_cw=tuple(2 * v for v in params.friction.ts_cw))
     assert proc.report(wrong)["max_abs_error_pct"] > 5.0
+
+
+def test_fused_advance_and_measure_matches_the_two_step_path() -> None:
+    """The simulated backend's one-call tick gives the same samples as advance_to + measure."""
+    from app.engine.sim import Simulator
+
+    a, b = Simulator(seed=5), Simulator(seed=5)
+    for s in (a, b):
+        s.set_command(3.0, 1.0, 0.0, 10.0)
+    for i in range(1, 200):
+        t = i * 0.002
+        a.advance_to(t)
+        ma = a.measure(0.002).copy()
+        mb = b.advance_and_measure(t, 0.002).copy()
+        assert a.t == pytest.approx(b.t)
+        np.testing.assert_allclose(ma, mb, rtol=0, atol=1e-12)
