@@ -24,7 +24,8 @@ from app.engine.ident.rotary import RotaryFrictionProcedure
 from app.engine.ident.runner import identify_linear_sim, identify_rotary_sim, rotary_inputs_for, simulate
 from app.engine.params import ParameterError, PlantParams
 
-REFDATA = Path(__file__).resolve().parents[2] / "shared" / "refdata"
+REFDATA = next((p for p in (Path(__file__).resolve().parents[2] / "shared" / "refdata", Path("/work/shared/refdata"))
+                if p.is_dir()), Path("/work/shared/refdata"))
 
 
 # ----------------------------------------------------------------- GUI rules (Appendix 1–2, SPEC §6)
@@ -247,7 +248,7 @@ def test_rotary_sweep_recovers_table_4_2_and_feeds_the_controller(tmp_path: Path
     for k, ref in truth.items():
         got = np.asarray(getattr(tab, k))
         err = np.abs(got - ref) / np.abs(ref)
-        assert np.all(err <= tol[k[:2]]), (k, got, ref)
+        assert np.all(err <= tol[k.split("_")[0]]), (k, got, ref)
     for p, (wc, ww) in zip(sw.points, zip(tables.FRICTION_WS_CCW, tables.FRICTION_WS_CW, strict=True), strict=True):
         for f, truth_ws in ((p.result.ccw, wc), (p.result.cw, ww)):
             assert abs(f.vs - truth_ws) <= 0.25 * abs(truth_ws) or f.ci["vs"].contains(truth_ws)
