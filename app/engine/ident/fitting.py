@@ -340,3 +340,20 @@ def breakaway_level(f: np.ndarray, pos: np.ndarray, rest_tol: float) -> float:
         return float(np.max(f))
     i = int(moved[0])
     return 0.5 * (float(f[i - 1]) + float(f[i]))
+
+
+def curve_r2(data: Any, fits: tuple[tuple[str, FrictionFit], ...]) -> float:
+    """R² of fitted curves on the dynamic tests of ``data`` (``data.arrays(direction)``).
+
+    Args:
+        data: Rotary or linear experiment data.
+        fits: (direction name, its fit) pairs.
+    """
+    ys, ps = [], []
+    for d, fit in fits:
+        _, v, f = data.arrays(d)
+        ok = np.isfinite(v) & np.isfinite(f)
+        ys.append(f[ok])
+        ps.append(fit.curve(v[ok]))
+    y, p = np.concatenate(ys), np.concatenate(ps)
+    return float(1.0 - np.sum((y - p) ** 2) / np.sum((y - y.mean()) ** 2))

@@ -89,6 +89,13 @@ LINEAR_FIELDS: tuple[FieldRule, ...] = (
 )
 
 
+def _check_fields(obj: object, rules: tuple[FieldRule, ...]) -> None:
+    """Raise the GUI's message for the first invalid field of ``obj``."""
+    for rule in rules:
+        if not rule.check(float(getattr(obj, rule.name))):
+            raise ParameterError(f"{rule.name}: {rule.error}")
+
+
 @dataclass(frozen=True)
 class RotaryInputs:
     """Validated inputs of the rotary friction identification (Figure 3.19).
@@ -110,9 +117,7 @@ class RotaryInputs:
     pw_bar: float = 3.0
 
     def __post_init__(self) -> None:
-        for rule in ROTARY_FIELDS:
-            if not rule.check(float(getattr(self, rule.name))):
-                raise ParameterError(f"{rule.name}: {rule.error}")
+        _check_fields(self, ROTARY_FIELDS)
 
     @property
     def torque_per_bar(self) -> float:
@@ -139,9 +144,7 @@ class LinearInputs:
     nd: int = 100
 
     def __post_init__(self) -> None:
-        for rule in LINEAR_FIELDS:
-            if not rule.check(float(getattr(self, rule.name))):
-                raise ParameterError(f"{rule.name}: {rule.error}")
+        _check_fields(self, LINEAR_FIELDS)
         if not self.rod_diameter_mm < self.piston_diameter_mm:
             raise ParameterError(f"rod_diameter_mm: {MSG_CORRECT}")
 

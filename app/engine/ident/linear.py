@@ -27,13 +27,14 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
 from scipy.signal import savgol_filter
 
 from app.engine.hardware.base import Command
-from app.engine.ident.fitting import FrictionFit, breakaway_level, fit_friction
+from app.engine.ident.fitting import FrictionFit, breakaway_level, curve_r2, fit_friction
 from app.engine.ident.gui_rules import LinearInputs
 from app.engine.ident.procedure import Procedure, Script
 
@@ -156,19 +157,10 @@ class LinearFrictionProcedure(Procedure):
 
     def script(self) -> Script:
         """Static extension, static retraction, dynamic extension, dynamic retraction."""
-        inp = self.inputs
         for d in ("extension", "retraction"):
-            self.begin(f"static {d}", inp.ns)
-            for _ in range(inp.ns):
-                self.next_test()
-                yield from self.static_test(d)
-                self.test_done()
+            yield from self.block(f"static {d}", self.inputs.ns, partial(self.static_test, d))
         for d in ("extension", "retraction"):
-            self.begin(f"dynamic {d}", inp.nd)
-            for _ in range(inp.nd):
-                self.next_test()
-                yield from self.dynamic_test(d)
-                self.test_done()
+            yield from self.block(f"dynamic {d}", self.inputs.nd, partial(self.dynamic_test, d))
         yield from self.move_to(0.1 * self.L)  # home (thesis: x = 0.1 L)
 
     def static_test(self, direction: str) -> Script:
@@ -322,11 +314,4 @@ class LinearFrictionEstimator:
         """R² of the fitted curves on the dynamic tests (both directions)."""
         if self.params_ is None:
             raise RuntimeError("fit first")
-        ys, ps = [], []
-        for d, fit in (("extension", self.params_.extension), ("retraction", self.params_.retraction)):
-            _, v, f = data.arrays(d)
-            ok = np.isfinite(v) & np.isfinite(f)
-            ys.append(f[ok])
-            ps.append(fit.curve(v[ok]))
-        y, p = np.concatenate(ys), np.concatenate(ps)
-        return float(1.0 - np.sum((y - p) ** 2) / np.sum((y - y.mean()) ** 2))
+        return curve_r2(data, (("extension", self.params_.extension), ("retraction", self.params_.retraction)))

@@ -169,6 +169,14 @@ class Procedure(abc.ABC):
         """One experiment finished."""
         self.progress.done_tests += 1
 
+    def block(self, phase: str, n: int, test: Callable[[], Script]) -> Script:
+        """Run ``n`` experiments ``test()`` as one block, counting progress."""
+        self.begin(phase, n)
+        for _ in range(n):
+            self.next_test()
+            yield from test()
+            self.test_done()
+
 
 @dataclass
 class RunSummary:

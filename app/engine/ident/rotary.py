@@ -35,12 +35,13 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
 
 from app.engine.hardware.base import Command
-from app.engine.ident.fitting import FrictionFit, breakaway_level, fit_friction
+from app.engine.ident.fitting import FrictionFit, breakaway_level, curve_r2, fit_friction
 from app.engine.ident.gui_rules import RotaryInputs
 from app.engine.ident.procedure import Procedure, Script
 
@@ -196,19 +197,10 @@ class RotaryFrictionProcedure(Procedure):
     # ---------------------------------------------------------------- flowcharts
     def script(self) -> Script:
         """Static CCW, static CW, dynamic CCW, dynamic CW (the thesis's order)."""
-        inp = self.inputs
-        for direction in ("ccw", "cw"):
-            self.begin(f"static {direction.upper()}", inp.ns)
-            for _ in range(inp.ns):
-                self.next_test()
-                yield from self.static_test(direction)
-                self.test_done()
-        for direction in ("ccw", "cw"):
-            self.begin(f"dynamic {direction.upper()}", inp.nd)
-            for _ in range(inp.nd):
-                self.next_test()
-                yield from self.dynamic_test(direction)
-                self.test_done()
+        for d in ("ccw", "cw"):
+            yield from self.block(f"static {d.upper()}", self.inputs.ns, partial(self.static_test, d))
+        for d in ("ccw", "cw"):
+            yield from self.block(f"dynamic {d.upper()}", self.inputs.nd, partial(self.dynamic_test, d))
 
     def static_test(self, direction: str) -> Script:
         """One static experiment (Figure 3.14 a/b)."""
@@ -335,15 +327,7 @@ class RotaryFrictionEstimator:
         """R² of the fitted curves on ``data``'s dynamic tests (both directions)."""
         if self.params_ is None:
             raise RuntimeError("fit first")
-        ys, ps = [], []
-        for d, f in (("ccw", self.params_.ccw), ("cw", self.params_.cw)):
-            _, w, tf = data.arrays(d)
-            ok = np.isfinite(w) & np.isfinite(tf)
-            ys.append(tf[ok])
-            ps.append(f.curve(w[ok]))
-        y, p = np.concatenate(ys), np.concatenate(ps)
-        return float(1.0 - np.sum((y - p) ** 2) / np.sum((y - y.mean()) ** 2))
-
+        return curve_r2(data, (("ccw", self.params_.ccw), ("cw", self.params_.cw)))
 
 class OpenLoopValidation(RotaryFrictionProcedure):
     """Open-loop, load-free friction validation (thesis 4.2.1, Figures 4.13–4.15).
@@ -371,12 +355,8 @@ class OpenLoopValidation(RotaryFrictionProcedure):
 
     def script(self) -> Script:
         """CCW then CW runs."""
-        for direction in ("ccw", "cw"):
-            self.begin(f"validation {direction.upper()}", self.n_tests)
-            for _ in range(self.n_tests):
-                self.next_test()
-                yield from self.dynamic_test(direction)
-                self.test_done()
+        for d in ("ccw", "cw"):
+            yield from self.block(f"validation {d.upper()}", self.n_tests, partial(self.dynamic_test, d))
 
     def report(self, table: Any) -> dict[str, Any]:
         """Predicted vs measured driving-chamber pressure per run, with % error.

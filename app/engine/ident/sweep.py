@@ -25,6 +25,9 @@ from typing import Any
 from app.engine.ident.rotary import RotaryFrictionResult
 from app.engine.params import ParameterError, PlantParams, RotaryFriction
 
+TABLE_FIELDS: tuple[str, ...] = ("pw_bar", "ts_ccw", "tc_ccw", "ws_ccw", "b_ccw", "ts_cw", "tc_cw", "ws_cw", "b_cw")
+"""The :class:`RotaryFriction` columns a friction table file holds."""
+
 
 @dataclass
 class SweepPoint:
@@ -73,8 +76,7 @@ class FrictionSweep:
         """JSON view: the table plus every fit's details."""
         t = self.to_table()
         return {
-            "table": {k: list(getattr(t, k)) for k in ("pw_bar", "ts_ccw", "tc_ccw", "ws_ccw", "b_ccw", "ts_cw",
-                                                       "tc_cw", "ws_cw", "b_cw")},
+            "table": {k: list(getattr(t, k)) for k in TABLE_FIELDS},
             "fits": [{"pw_bar": p.result.pw_bar, "ccw": p.result.ccw.as_dict(), "cw": p.result.cw.as_dict(),
                       "sim_seconds": p.sim_seconds, "wall_seconds": p.wall_seconds} for p in self.points],
         }
@@ -84,9 +86,8 @@ def save_table(table: RotaryFriction, path: str | Path) -> None:
     """Write a friction table as JSON (atomically)."""
     path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    data = {k: list(getattr(table, k)) for k in ("pw_bar", "ts_ccw", "tc_ccw", "ws_ccw", "b_ccw", "ts_cw",
-                                                 "tc_cw", "ws_cw", "b_cw")}
-    data["shape_j"] = table.shape_j  # type: ignore[assignment]
+    data: dict[str, Any] = {k: list(getattr(table, k)) for k in TABLE_FIELDS}
+    data["shape_j"] = table.shape_j
     tmp.write_text(json.dumps(data, indent=1))
     os.replace(tmp, path)
 
@@ -100,7 +101,7 @@ def load_table(path: str | Path) -> RotaryFriction:
     if not isinstance(data, dict):
         raise ParameterError(f"friction table {path}: expected a JSON object")
     kw: dict[str, Any] = {}
-    for k in ("pw_bar", "ts_ccw", "tc_ccw", "ws_ccw", "b_ccw", "ts_cw", "tc_cw", "ws_cw", "b_cw"):
+    for k in TABLE_FIELDS:
         if k not in data:
             raise ParameterError(f"friction table {path}: missing {k!r}")
         kw[k] = tuple(float(v) for v in data[k])
