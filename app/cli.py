@@ -7,6 +7,7 @@ import json
 import math
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -113,6 +114,8 @@ def _identify(args: argparse.Namespace) -> int:
                 seal_plot(result, d / "seal_friction.png")
         print(json.dumps(result) if args.json else json.dumps(result["seals"], indent=1))
         return 0
+    if args.rig == "dcv":
+        return _identify_dcv(args)
     if args.ns < 30 or args.nd < 30:
         raise ParameterError(f"{'ns' if args.ns < 30 else 'nd'}: {MSG_N}")
     out: dict[str, object]
@@ -191,6 +194,51 @@ def _identify(args: argparse.Namespace) -> int:
     return 0
 
 
+def _identify_dcv(args: argparse.Namespace) -> int:
+    """CPR maps, new-flow-model fit and validation against the literature models (thesis 4.1)."""
+    from pathlib import Path
+
+    from app.engine.ident import runner
+    from app.engine.ident.dcv import THESIS_VALIDATION
+
+    est, run, vrun, cases = runner.identify_dcv_sim(args.dcv_model, seed=args.seed,
+                                                    on_progress=_progress_printer(args.progress))
+    n_thesis = len(THESIS_VALIDATION)
+
+    def mean_err(rows: list[Any]) -> dict[str, float]:
+        return {m: float(sum(c.mape_pct[m] for c in rows) / len(rows)) for m in rows[0].mape_pct} if rows else {}
+
+    summary = {
+        "plant_dcv_model": args.dcv_model,
+        "fit": est.as_dict(),
+        "validation": {"thesis_points": [c.summary() for c in cases[:n_thesis]],
+                       "held_out": [c.summary() for c in cases[n_thesis:]],
+                       "mean_mape_pct": {"thesis_points": mean_err(cases[:n_thesis]),
+                                         "held_out": mean_err(cases[n_thesis:])}},
+        "timing": {"rig_seconds": run.summary.sim_seconds + vrun.summary.sim_seconds,
+                   "wall_seconds": run.summary.wall_seconds + vrun.summary.wall_seconds},
+    }
+    if args.out:
+        d = Path(args.out)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "dcv.json").write_text(json.dumps(summary | {"cpr_tests": run.procedure.data.as_dict()["tests"]},
+                                               indent=1, default=float))
+        if not args.no_plots:
+            from app.engine.ident.plots import cpr_plot, flow_fit_plot, validation_plot
+
+            cpr_plot(est, d / "cpr.png")
+            flow_fit_plot(est, run.procedure.data, d / "flow_fit.png")
+            validation_plot(cases[:n_thesis], d / "validation_thesis.png")
+            validation_plot(cases[n_thesis:], d / "validation_held_out.png")
+    if args.json:
+        print(json.dumps(summary, default=float))
+    else:
+        print(json.dumps(summary["validation"]["mean_mape_pct"], indent=1))
+        print(f"rig time {summary['timing']['rig_seconds']:.0f} s, computed in "
+              f"{summary['timing']['wall_seconds']:.1f} s", file=sys.stderr)
+    return 0
+
+
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -223,14 +271,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     b.add_argument("--no-plots", action="store_true", help="thesis: skip the figures")
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=_bench)
-    i = sub.add_parser("identify", help="automated friction identification on the simulated rig (thesis 3.2.4)")
-    i.add_argument("rig", choices=("rotary", "linear", "sweep", "seal"),
-                   help="seal: fit pressure-dependent Coulomb + viscous friction to constant-speed strokes "
+    i = sub.add_parser("identify", help="automated identification on the simulated rig (thesis 3.2.3–3.2.4)")
+    i.add_argument("rig", choices=("rotary", "linear", "sweep", "seal", "dcv"),
+                   help="dcv: CPR maps and flow-model fit of the directional valve (thesis 4.1); "
+                        "seal: fit pressure-dependent Coulomb + viscous friction to constant-speed strokes "
                         "(Zillen format: t ms, laser V, p V, F V, x mm, p bar gauge, F N)")
     i.add_argument("files", nargs="*", help="seal: data files")
     i.add_argument("--pw", type=float, default=3.0, help="rotary: working pressure P_w [bar abs], 1–8")
     i.add_argument("--pressures", default="1,2,3,4,5,6", help="sweep: working pressures [bar abs], comma-separated")
     i.add_argument("--cylinder", choices=("C1", "C2", "C3"), default="C3", help="linear: thesis cylinder")
+    i.add_argument("--dcv-model", choices=("new", "iso"), default="iso",
+                   help="dcv: the simulated valve (iso: ISO 6358 with underlaps; new: Eq 3.10–3.11 with known maps)")
     i.add_argument("--ns", type=int, default=100, help="static experiments per direction (>= 30)")
     i.add_argument("--nd", type=int, default=100, help="dynamic experiments per direction (>= 30)")
     i.add_argument("--seed", type=int, default=0)

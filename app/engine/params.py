@@ -426,6 +426,9 @@ class SensorParams:
         encoder_counts: Quadrature counts per revolution (1024 lines × 4).
         adc_bits: DAQ resolution [bit].
         adc_range_v: DAQ input range ±[V].
+        supply_tap: Where PS-0 sits: ``"compressor"`` (the interaction rig,
+            upstream of both PRVs) or ``"prv_a"`` (the CPR set-up of
+            Figure 3.10, at the DCV's supply port, i.e. PRV-a's outlet).
         speed_filter_hz: Cut-off of the first-order filter on the
             differentiated encoder angle [Hz] (thesis: "derivative, then
             transfer-function filter", 3.2.4).
@@ -443,8 +446,11 @@ class SensorParams:
     adc_bits: int = 16
     adc_range_v: float = 10.0
     speed_filter_hz: float = 25.0
+    supply_tap: Literal["compressor", "prv_a"] = "compressor"
 
     def __post_init__(self) -> None:
+        if self.supply_tap not in ("compressor", "prv_a"):
+            raise ParameterError(f"supply_tap = {self.supply_tap!r} must be 'compressor' or 'prv_a'")
         check_range("pressure_noise_bar", self.pressure_noise_bar, 0.0, 1.0, unit="bar")
         check_range("pressure_full_scale_bar", self.pressure_full_scale_bar, 0.0, 100.0, lo_open=True, unit="bar")
         check_range("pressure_span_v", self.pressure_span_v, 0.0, 10.0, lo_open=True, unit="V")

@@ -92,7 +92,8 @@ class Simulator:
         pa, pb = pl.chamber_pressures(self.x, self.kernel)
         ti = self.true_interaction()
         m = np.empty(sn.NM)
-        sn.measure(pa, pb, self.x[pl.I_PS], self.x[pl.I_POS], ti, sc, self.rng.standard_normal(4),
+        ps = pl.supply_sensor_pressure(self.x, self.kernel, sc.ps_at_prv_a)
+        sn.measure(pa, pb, ps, self.x[pl.I_POS], ti, sc, self.rng.standard_normal(4),
                    self._sensor_state, dt, m)
         return m
 
@@ -143,7 +144,7 @@ def _advance_measure(
     t += n * k.h
     pa, pb = pl.chamber_pressures(x, k)
     ti = pl.human_torque(t, x[pl.I_POS], x[pl.I_VEL], prog_t, prog_pos, k.hum_k, k.hum_d, k.hum_lim)
-    sn.measure(pa, pb, x[pl.I_PS], x[pl.I_POS], ti, sc, noise, st, dt, meas)
+    sn.measure(pa, pb, pl.supply_sensor_pressure(x, k, sc.ps_at_prv_a), x[pl.I_POS], ti, sc, noise, st, dt, meas)
     return t
 
 

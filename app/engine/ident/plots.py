@@ -1,4 +1,4 @@
-"""The identification GUIs' plots (Figures 3.19, 3.27, 4.12, 4.20–4.21), as files.
+"""The identification GUIs' plots (Figures 3.19, 3.27, 4.2–4.4, 4.6–4.12, 4.20–4.21), as files.
 
 Matplotlib with the Agg backend: PNG for reports and the dashboard.
 """
@@ -54,11 +54,7 @@ def friction_curve_plot(data: Any, result: Any, path: str | Path) -> Path:
     ax.legend(fontsize=8)
     title = f"Rotary friction at P_w = {result.pw_bar:g} bar" if rotary else "Linear friction"
     ax.set_title(title)
-    path = Path(path)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, plt, path)
 
 
 def friction_surface_plot(table: Any, path: str | Path) -> Path:
@@ -81,6 +77,78 @@ def friction_surface_plot(table: Any, path: str | Path) -> Path:
         ax.set_ylabel("P_w [bar]")
         ax.set_zlabel("T_f [N·m]")
         ax.set_title(f"{name}")
+    return _save(fig, plt, path)
+
+
+def cpr_plot(estimator: Any, path: str | Path) -> Path:
+    """CPR a(u) per supply pressure for filling and exhausting (Figure 4.2)."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, mode in zip(axes, ("filling", "exhausting"), strict=True):
+        mm = estimator.params_.get(mode)
+        if mm is None:
+            continue
+        for j, ps in enumerate(mm.ps_cpr):
+            ax.plot(mm.u_cpr, mm.a[:, j], ".-", ms=3, lw=1, label=f"P_s = {ps:g} bar")
+        ax.set_xlabel("u [V]")
+        ax.set_ylabel("CPR a [-]")
+        ax.set_title(f"Port 2, {mode}")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+    return _save(fig, plt, path)
+
+
+def flow_fit_plot(estimator: Any, data: Any, path: str | Path, signals: tuple[float, ...] = (4.7, 5.0, 5.3)) -> Path:
+    """Measured mass flow against chamber pressure with the fitted new model (Figures 4.3–4.4)."""
+    from app.engine.ident.dcv import measured_flow
+
+    plt = _plt()
+    fig, axes = plt.subplots(2, len(signals), figsize=(4 * len(signals), 7), squeeze=False)
+    for r, mode in enumerate(("filling", "exhausting")):
+        mm = estimator.params_.get(mode)
+        for c, u in enumerate(signals):
+            ax = axes[r][c]
+            tests = [t for t in data.select(mode, estimator.fit_ps_bar) if abs(t.u - u) < 1e-6]
+            if mm is None or not tests:
+                ax.set_visible(False)
+                continue
+            p, ps, m = measured_flow(tests[0], data.inputs)
+            ax.plot(p / 1e5, m * 1e3, "k.", ms=2, alpha=0.4, label="measured (Eq 4.1)")
+            order = np.argsort(p)
+            ax.plot(p[order] / 1e5, mm.flow("new", p[order], u, tests[0].ps_mean, estimator.p_atm_,
+                                            data.inputs.temperature_k, ps[order]) * 1e3,
+                    "r-", lw=1.2, label="new model fit")
+            ax.set_title(f"{mode}, u = {u:g} V, P_s = {estimator.fit_ps_bar:g} bar")
+            ax.set_xlabel("P_a [bar abs]")
+            ax.set_ylabel("ṁ [g/s]")
+            ax.grid(True, alpha=0.3)
+            ax.legend(fontsize=7)
+    return _save(fig, plt, path)
+
+
+def validation_plot(cases: list[Any], path: str | Path, models: tuple[str, ...] = ("new", "standard")) -> Path:
+    """Measured vs predicted P_a for each validation run (Figures 4.6–4.11)."""
+    plt = _plt()
+    n = len(cases)
+    cols = 3
+    rows = max(1, (n + cols - 1) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.6 * rows), squeeze=False)
+    for i, c in enumerate(cases):
+        ax = axes[i // cols][i % cols]
+        ax.plot(c.t, c.measured, "k-", lw=1.4, label="measured")
+        for m in models:
+            ax.plot(c.t, c.predicted[m], "--", lw=1, label=f"{m} ({c.mape_pct[m]:.2f} %)")
+        ax.set_title(f"{c.mode} u = {c.u:g} V, P_s = {c.ps_bar:g} bar", fontsize=8)
+        ax.set_xlabel("t [s]", fontsize=7)
+        ax.set_ylabel("P_a [bar]", fontsize=7)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=6)
+    for j in range(n, rows * cols):
+        axes[j // cols][j % cols].set_visible(False)
+    return _save(fig, plt, path)
+
+
+def _save(fig: Any, plt: Any, path: str | Path) -> Path:
     path = Path(path)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

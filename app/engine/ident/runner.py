@@ -96,3 +96,53 @@ def identify_linear_sim(cylinder: str, ns: int, nd: int, seed: int = 0, params: 
     run = simulate(proc, params, LINEAR_RATE_HZ, seed=seed, on_progress=on_progress)
     est = LinearFrictionEstimator(with_ci=with_ci).fit(proc.data)
     return est.params_, run
+
+
+DCV_RATE_HZ = 200.0  # the linear rig's rate; the thesis validated at 100 Hz (0.01 s samples)
+
+
+def dcv_inputs_for(params: PlantParams, **kw: Any) -> Any:
+    """CPR inputs matching the simulated constant-volume chamber (cylinder fully extended)."""
+    from app.engine.ident.dcv import DCVInputs
+
+    c = params.linear
+    if c is None:
+        raise ValueError("the CPR set-up needs the linear rig (PlantParams.linear_rig)")
+    return DCVInputs(chamber_volume_cm3=(c.area_a * c.stroke + c.dead_volume_a) * 1e6,
+                     temperature_k=params.t_atm, **kw)
+
+
+def identify_dcv_sim(model: str = "new", seed: int = 0, params: PlantParams | None = None,
+                     inputs: Any = None, validation: list[tuple[str, float, float]] | None = None,
+                     on_progress: Callable[[Progress], None] | None = None) -> Any:
+    """CPR mapping, flow-model fit and validation runs on the simulated C3 set-up (thesis 4.1).
+
+    Args:
+        model: The simulator's DCV model, ``"new"`` (Eq 3.10–3.11 with known
+            maps, to check recovery) or ``"iso"`` (ISO 6358 with underlaps).
+        seed: Sensor-noise seed.
+        params: Plant (default: C3 linear rig with ``model``).
+        inputs: :class:`DCVInputs` (default: the thesis's grid for this chamber).
+        validation: (mode, u, P_s) cases run for 15 s after the fit
+            (default: Figures 4.6–4.11 plus the held-out points).
+
+    Returns:
+        (estimator, cpr_run, validation_run, cases): the fitted
+        :class:`DCVFlowEstimator`, both :class:`SimRun` objects and the
+        :class:`ValidationCase` list.
+    """
+    from app.engine.ident.dcv import HELD_OUT, THESIS_VALIDATION, CPRProcedure, DCVFlowEstimator
+    from app.engine.params import DCVParams, SensorParams
+
+    # Figure 3.10: PS-0 measures the DCV's supply port
+    params = params or PlantParams.linear_rig("C3", dcv=DCVParams(model=model),  # type: ignore[arg-type]
+                                              sensors=SensorParams(supply_tap="prv_a"))
+    inputs = inputs or dcv_inputs_for(params)
+    proc = CPRProcedure(inputs)
+    run = simulate(proc, params, DCV_RATE_HZ, seed=seed, on_progress=on_progress)
+    est = DCVFlowEstimator().fit(proc.data)
+    cases = THESIS_VALIDATION + HELD_OUT if validation is None else validation
+    vproc = CPRProcedure(inputs, fixed_s=15.0, cases=cases)
+    vrun = simulate(vproc, params, DCV_RATE_HZ, seed=seed + 1, on_progress=on_progress)
+    vproc.data.p_atm_bar = proc.data.p_atm_bar
+    return est, run, vrun, est.validate(vproc.data)

@@ -234,6 +234,14 @@ def chamber_pressures(x: np.ndarray, k: Any) -> tuple[float, float]:
     return x[I_M0 + N_CA] * R_AIR * ta / va, x[I_M0 + N_CB] * R_AIR * tb / vb
 
 
+@njit(cache=True, error_model="numpy")
+def supply_sensor_pressure(x: np.ndarray, k: Any, at_prv_a: bool) -> float:
+    """Pressure at PS-0 [Pa]: the compressor line, or PRV-a's outlet (CPR set-up)."""
+    if at_prv_a:
+        return x[I_M0 + N_OA] * R_AIR * k.t_atm / k.prv_vol
+    return x[I_PS]
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def area_frac(disp_v: float, mp: np.ndarray) -> float:
     """MPYE area fraction at spool displacement ``disp_v`` [V] (0 when closed).

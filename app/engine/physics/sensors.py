@@ -24,7 +24,7 @@ SensorConst: Any = namedtuple(
     "SensorConst",
     [
         "p_noise", "p_fs", "p_span", "gain_a", "gain_b", "bias_a", "bias_b",
-        "t_noise", "t_range", "t_gain", "t_bias", "enc_res", "adc_lsb", "speed_alpha", "rotary",
+        "t_noise", "t_range", "t_gain", "t_bias", "enc_res", "adc_lsb", "speed_alpha", "rotary", "ps_at_prv_a",
     ],
 )
 
@@ -49,6 +49,7 @@ def build_sensor_const(p: PlantParams, dt: float) -> Any:
         t_bias=bias.torque_nm if bias else 0.0,
         enc_res=enc, adc_lsb=2.0 * s.adc_range_v / (1 << s.adc_bits),
         speed_alpha=1.0 - math.exp(-2.0 * math.pi * s.speed_filter_hz * dt), rotary=p.rig == "rotary",
+        ps_at_prv_a=s.supply_tap == "prv_a",
     )
 
 
