@@ -95,7 +95,7 @@ def _progress_printer(enabled: bool):  # type: ignore[no-untyped-def]
 def _identify(args: argparse.Namespace) -> int:
     from app.engine.ident import runner
     from app.engine.ident.gui_rules import MSG_N, MSG_PW, LinearInputs, RotaryInputs
-    from app.engine.params import ParameterError
+    from app.engine.params import ParameterError, check_working_pressure
 
     # the thesis GUIs' rules and messages, before anything runs
     if args.rig == "seal":
@@ -116,6 +116,18 @@ def _identify(args: argparse.Namespace) -> int:
         return 0
     if args.rig == "dcv":
         return _identify_dcv(args)
+    if args.rig == "pid":
+        return _identify_pid(args)
+    if args.rig == "closedloop":
+        from app.engine.ident.rotary import closed_loop_validation
+        from app.engine.ident.sweep import load_table
+
+        check_working_pressure(args.pw)
+        table = load_table(args.table) if args.table else None
+        res = {k: v for k, v in closed_loop_validation(args.target, args.pw, table, args.seed).items()
+               if k not in ("t", "torque", "moving")}
+        print(json.dumps(res, indent=None if args.json else 1))
+        return 0
     if args.ns < 30 or args.nd < 30:
         raise ParameterError(f"{'ns' if args.ns < 30 else 'nd'}: {MSG_N}")
     out: dict[str, object]
@@ -239,6 +251,37 @@ def _identify_dcv(args: argparse.Namespace) -> int:
     return 0
 
 
+def _identify_pid(args: argparse.Namespace) -> int:
+    """Frequency-response PID autotune of one PRV loop (thesis 3.6.2), beside the thesis's gains."""
+    from dataclasses import asdict
+    from pathlib import Path
+
+    from app.engine.ident.pid_tune import THESIS_FINAL, THESIS_TUNED, AutotuneSpec, autotune_sim
+
+    spec = AutotuneSpec(side=args.side, pw_bar=args.pw, bandwidth_rad_s=args.bandwidth, phase_margin_deg=args.pm)
+    r = autotune_sim(spec, seed=args.seed)
+    t = r["tuning"]
+    out = {"side": args.side, "tuned": {"Kp": t.kp, "Ki": t.ki, "Kd": t.kd, "N": t.n_filter,
+                                        "crossover_rad_s": t.crossover_rad_s, "phase_margin_deg": t.phase_margin_deg,
+                                        "targets_met": t.exact, "note": t.note},
+           "thesis_autotuner": dict(zip(("Kp", "Ki", "Kd"), THESIS_TUNED[args.side], strict=True)),
+           "thesis_eq_3_26": dict(zip(("Kp", "Ki", "Kd"), THESIS_FINAL[args.side], strict=True)),
+           "thesis_margins_on_this_plant": {k: {"crossover_rad_s": v[0], "phase_margin_deg": v[1]}
+                                            for k, v in r["thesis_margins"].items()},
+           "frf": r["frf"].as_dict(), "steps": [s.summary() for s in r["steps"]], "spec": asdict(spec),
+           "rig_seconds": r["rig_seconds"]}
+    if args.out:
+        d = Path(args.out)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / f"pid_{args.side}.json").write_text(json.dumps(out, indent=1, default=float))
+        if not args.no_plots:
+            from app.engine.ident.plots import autotune_plot
+
+            autotune_plot(r, d / f"pid_{args.side}.png")
+    print(json.dumps(out, default=float) if args.json else json.dumps(out["tuned"], indent=1, default=float))
+    return 0
+
+
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -272,21 +315,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=_bench)
     i = sub.add_parser("identify", help="automated identification on the simulated rig (thesis 3.2.3–3.2.4)")
-    i.add_argument("rig", choices=("rotary", "linear", "sweep", "seal", "dcv"),
+    i.add_argument("rig", choices=("rotary", "linear", "sweep", "seal", "dcv", "pid", "closedloop"),
                    help="dcv: CPR maps and flow-model fit of the directional valve (thesis 4.1); "
+                        "pid: frequency-response autotune of a PRV loop (thesis 3.6.2); "
+                        "closedloop: loaded friction validation with Table 4.3's PID gains (4.2.1, Table 4.4); "
                         "seal: fit pressure-dependent Coulomb + viscous friction to constant-speed strokes "
                         "(Zillen format: t ms, laser V, p V, F V, x mm, p bar gauge, F N)")
     i.add_argument("files", nargs="*", help="seal: data files")
     i.add_argument("--pw", type=float, default=3.0, help="rotary: working pressure P_w [bar abs], 1–8")
     i.add_argument("--pressures", default="1,2,3,4,5,6", help="sweep: working pressures [bar abs], comma-separated")
     i.add_argument("--cylinder", choices=("C1", "C2", "C3"), default="C3", help="linear: thesis cylinder")
+    i.add_argument("--side", choices=("a", "b"), default="a", help="pid: which PRV loop")
+    i.add_argument("--target", type=float, default=0.75, help="closedloop: target torque [N·m] (thesis 0.75, 1.5)")
+    i.add_argument("--bandwidth", type=float, default=2.0, help="pid: target crossover [rad/s]")
+    i.add_argument("--pm", type=float, default=60.0, help="pid: target phase margin [deg]")
     i.add_argument("--dcv-model", choices=("new", "iso"), default="iso",
                    help="dcv: the simulated valve (iso: ISO 6358 with underlaps; new: Eq 3.10–3.11 with known maps)")
     i.add_argument("--ns", type=int, default=100, help="static experiments per direction (>= 30)")
     i.add_argument("--nd", type=int, default=100, help="dynamic experiments per direction (>= 30)")
     i.add_argument("--seed", type=int, default=0)
     i.add_argument("--out", default="", help="write result.json (per-test data) and the friction plot here")
-    i.add_argument("--table", default="", help="sweep: write the controllers' friction table (JSON) here")
+    i.add_argument("--table", default="", help="sweep: write the controllers' friction table (JSON) here; "
+                   "closedloop: the table under test (default Table 4.2)")
     i.add_argument("--no-plots", action="store_true")
     i.add_argument("--progress", action="store_true", help="print 'experiment k of N' to stderr")
     i.add_argument("--json", action="store_true", help="print only the contract JSON")

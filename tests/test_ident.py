@@ -325,3 +325,24 @@ def test_fused_advance_and_measure_matches_the_two_step_path() -> None:
         mb = b.advance_and_measure(t, 0.002).copy()
         assert a.t == pytest.approx(b.t)
         np.testing.assert_allclose(ma, mb, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("target", [0.75, 1.5])
+def test_closed_loop_validation_table_4_4(target: float) -> None:
+    """4.2.1 closed loop at P_w = 5.4 bar with Table 4.3's PID gains: the true friction
+    table tracks the target within the thesis's MAE; a wrong one is caught."""
+    from dataclasses import replace
+
+    from app.engine.ident.rotary import THESIS_TABLE_4_4, closed_loop_validation
+    from app.engine.params import RotaryFriction
+
+    ok = closed_loop_validation(target)
+    assert ok["n_samples"] > 1000
+    assert ok["mae_nm"] < THESIS_TABLE_4_4[target]["mae"]
+    assert ok["rmse_nm"] >= ok["mae_nm"]  # always true of an error signal; Table 4.4 prints RMSE < MAE
+    assert abs(ok["mean_torque_nm"] - target) < 0.05
+    rf = RotaryFriction()
+    wrong = replace(rf, tc_ccw=tuple(1.5 * v for v in rf.tc_ccw), b_ccw=tuple(1.5 * v for v in rf.b_ccw))
+    bad = closed_loop_validation(target, friction=wrong)
+    assert bad["mae_nm"] > 1.5 * ok["mae_nm"]
+    assert bad["mean_torque_nm"] < target  # over-compensated friction: the user feels less than the target

@@ -19,6 +19,11 @@ ControllerName = Literal["default", "pid", "fuzzy"]
 CONTROLLER_H: dict[str, int] = {"default": cpl.H_DEFAULT, "pid": cpl.H_PID, "fuzzy": cpl.H_FUZZY}
 
 
+TABLE_4_3_GAINS: tuple[tuple[float, float, float], tuple[float, float, float]] = ((0.715, 7.25, 0.016),
+                                                                                (0.715, 7.0, 0.012))
+"""Thesis Table 4.3: PID-a / PID-b gains of the closed-loop friction validation (4.2.1)."""
+
+
 def controller_h(name: str) -> int:
     """Switch value h of thesis Fig 3.36 for a controller name.
 
@@ -47,6 +52,10 @@ class ControllerConfig:
         fuzzy: Membership functions and defuzzifier of the scheduler.
         friction: Friction table of the estimator (Table 4.2 by default).
         vane: Cylinder geometry (A_v·r).
+        pid_gains: Cascade PID gains ((K_p, K_i, K_d) of PRV-a, of PRV-b)
+            [-, 1/s, s]; ``None`` keeps Eq 3.26's. Table 4.3's trial-and-error
+            set is :data:`TABLE_4_3_GAINS`; an autotuned set comes from
+            :mod:`app.engine.ident.pid_tune`.
     """
 
     controller: ControllerName = "fuzzy"
@@ -58,9 +67,16 @@ class ControllerConfig:
     fuzzy: FuzzyConfig = field(default_factory=FuzzyConfig)
     friction: RotaryFriction = field(default_factory=RotaryFriction)
     vane: VaneCylinder = field(default_factory=VaneCylinder)
+    pid_gains: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
     def __post_init__(self) -> None:
         check_working_pressure(self.pw_bar)
+        if self.pid_gains is not None:
+            if len(self.pid_gains) != 2 or any(len(g) != 3 for g in self.pid_gains):
+                raise ParameterError("pid_gains must be ((K_p, K_i, K_d) of PRV-a, (K_p, K_i, K_d) of PRV-b)")
+            for side, g in zip("ab", self.pid_gains, strict=True):
+                for name, v in zip(("K_p", "K_i", "K_d"), g, strict=True):
+                    check_range(f"pid_gains {name},{side}", v, 0.0, 100.0)
         check_range("target_nm", self.target_nm, -5.0, 5.0, unit="N·m")
         controller_h(self.controller)
 
@@ -75,4 +91,7 @@ class ControllerConfig:
                                 self.pdra, self.tdra)
         cp[cpl.P_FR_J] = self.friction.shape_j
         cp[cpl.P_TDRA_REF] = 1.0 if self.tdra_into_reference else 0.0
+        if self.pid_gains is not None:
+            for side, (kp, ki, kd) in enumerate(self.pid_gains):
+                cp[cpl.P_KP + side], cp[cpl.P_KI + side], cp[cpl.P_KD + side] = kp, ki, kd
         return cp, pack_friction(self.friction), self.fuzzy.pack()

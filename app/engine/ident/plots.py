@@ -154,3 +154,35 @@ def _save(fig: Any, plt: Any, path: str | Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def autotune_plot(result: dict[str, Any], path: str | Path) -> Path:
+    """Estimated plant response with the tuned loop, and the testing stage's steps (Figure 3.40)."""
+    from app.engine.ident.pid_tune import pidf
+
+    plt = _plt()
+    frf, tun = result["frf"], result["tuning"]
+    fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(14, 4))
+    w = np.exp(np.linspace(np.log(frf.w.min()), np.log(frf.w.max()), 300))
+    g = np.array([frf.at(float(x)) for x in w])
+    lg = g * pidf(w, tun.kp, tun.ki, tun.kd, tun.n_filter)
+    a1.semilogx(frf.w, 20 * np.log10(np.abs(frf.g)), "ko", label="G measured")
+    a1.semilogx(w, 20 * np.log10(np.abs(lg)), "r-", label="L = C·G tuned")
+    a1.axhline(0, color="k", lw=0.5)
+    a1.set_ylabel("gain [dB]")
+    a2.semilogx(frf.w, np.degrees(np.unwrap(np.angle(frf.g))), "ko", label="G measured")
+    a2.semilogx(w, np.degrees(np.unwrap(np.angle(lg))), "r-", label="L tuned")
+    a2.axhline(-180 + result["spec"]["phase_margin_deg"], color="b", ls=":", label="target PM")
+    a2.set_ylabel("phase [deg]")
+    for ax in (a1, a2):
+        ax.set_xlabel("ω [rad/s]")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    for s in result["steps"]:
+        a3.plot(s.t, s.p, lw=1, label=f"{s.label} ({s.gains[0]:.2f}, {s.gains[1]:.2f}, {s.gains[2]:.4f})")
+    a3.set_xlabel("t [s]")
+    a3.set_ylabel(f"P_{result['spec']['side']} [bar abs]")
+    a3.set_title("pressure step, testing stage")
+    a3.grid(True, alpha=0.3)
+    a3.legend(fontsize=7)
+    return _save(fig, plt, path)
