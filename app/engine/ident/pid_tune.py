@@ -34,7 +34,6 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
-from app.engine.constants import BAR
 from app.engine.control import pipeline as cpl
 from app.engine.control.config import ControllerConfig
 from app.engine.hardware.base import Command
@@ -315,15 +314,10 @@ class PIDAutotuneProcedure(Procedure):
         self.test_done()
 
     def frf(self) -> FrequencyResponse:
-        """Estimation stage on the recorded whole periods (the first is settling)."""
+        """Estimation stage on the record after its first (settling) period of the slowest sine."""
         t = np.asarray(self.t)
-        period = 2.0 * math.pi / float(self.spec.frequencies.min())
-        keep = t >= period
-        n = int(keep.sum())
-        n -= n % 2
-        # the plant output lags the command by one control period on a sampled rig
-        return estimate_frf(t[keep][:n], np.asarray(self.z)[keep][:n], np.asarray(self.y)[keep][:n],
-                            self.spec.frequencies)
+        keep = t >= 2.0 * math.pi / float(self.spec.frequencies.min())
+        return estimate_frf(t[keep], np.asarray(self.z)[keep], np.asarray(self.y)[keep], self.spec.frequencies)
 
 
 # --------------------------------------------------------------------------- testing
@@ -417,7 +411,7 @@ def autotune_sim(spec: AutotuneSpec | None = None, rate_hz: float = 200.0, seed:
     """Evaluation, estimation, optimisation and testing on the simulated rig.
 
     Returns:
-        ``{"spec", "frf", "tuning", "thesis", "steps", "rig_seconds"}``.
+        ``{"spec", "frf", "tuning", "thesis_margins", "steps", "rig_seconds"}``.
     """
     from app.engine.ident.runner import simulate
     from app.engine.params import PlantParams
@@ -436,4 +430,4 @@ def autotune_sim(spec: AutotuneSpec | None = None, rate_hz: float = 200.0, seed:
     margins = {label: loop_margins(frf, *g, spec.n_filter)
                for label, g in (("thesis autotuner", thesis_auto), ("thesis Eq 3.26", thesis_final))}
     return {"spec": asdict(spec), "frf": frf, "tuning": tuning, "thesis_margins": margins, "steps": steps,
-            "rig_seconds": run.summary.sim_seconds, "bar": BAR}
+            "rig_seconds": run.summary.sim_seconds}
