@@ -638,41 +638,33 @@ class DCVFlowEstimator:
                     t: float) -> SignalFit:
         scale = float(np.max(np.abs(m))) or 1.0
 
-        def shape(eps: float) -> np.ndarray:
-            return new_flow(mode, p, ps, p_atm, a, eps, 1.0, 1.0, t)
-
-        # g enters linearly: for each ε the best g is a projection, so fit ε alone (1-D, robust)
-        def g_of(eps: float) -> float:
-            s = shape(eps)
-            den = float(s @ s)
-            return max(float(s @ m) / den, 0.0) if den > 0 else 0.0
-
-        def res_new(x: np.ndarray) -> np.ndarray:
-            return (g_of(x[0]) * shape(x[0]) - m) / scale
-
-        sol = least_squares(res_new, [0.75], bounds=([0.2], [3.0]))
-        eps = float(sol.x[0])
-        g = g_of(eps)
-        r2 = _r2(m, g * shape(eps))
-
         def proj(s: np.ndarray) -> float:
             den = float(s @ s)
             return max(float(s @ m) / den, 0.0) if den > 0 else 0.0
 
-        std_shape = standard_flow(mode, p, ps, p_atm, 1.0, t)
-        std_area = proj(std_shape)
+        def varpro(shape: Any, x0: list[float], lo: list[float], hi: list[float]) -> tuple[np.ndarray, float]:
+            """The gain enters linearly: project it out and fit only the shape parameters."""
+
+            def res(x: np.ndarray) -> np.ndarray:
+                sh = shape(x)
+                return (proj(sh) * sh - m) / scale
+
+            x = least_squares(res, x0, bounds=(lo, hi)).x
+            return x, proj(shape(x))
+
+        def new_shape(x: np.ndarray) -> np.ndarray:
+            return new_flow(mode, p, ps, p_atm, a, x[0], 1.0, 1.0, t)
 
         def imp_shape(x: np.ndarray) -> np.ndarray:
             return improved_flow(mode, p, ps, p_atm, 1.0, x[0], x[1], t)
 
-        def res_imp(x: np.ndarray) -> np.ndarray:
-            s = imp_shape(x)
-            return (proj(s) * s - m) / scale
-
-        si = least_squares(res_imp, [0.3, 0.5], bounds=([0.0, 0.2], [0.95, 3.0]))
-        imp_area = proj(imp_shape(si.x))
+        xn, g = varpro(new_shape, [0.75], [0.2], [3.0])
+        eps = float(xn[0])
+        r2 = _r2(m, g * new_shape(xn))
+        std_area = proj(standard_flow(mode, p, ps, p_atm, 1.0, t))
+        si, imp_area = varpro(imp_shape, [0.3, 0.5], [0.0, 0.2], [0.95, 3.0])
         return SignalFit(u, a, eps, g, g / u if u > 0 else 0.0, 0.0, r2, int(p.size), std_area, imp_area,
-                         float(si.x[0]), float(si.x[1]))
+                         float(si[0]), float(si[1]))
 
     @staticmethod
     def _fit_bobrow(mode: str, flows: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]], p_atm: float,

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Any, Literal
+from typing import Any, ClassVar, Generic, Literal, Protocol, TypeVar
 
 import numpy as np
 from scipy import optimize, stats
@@ -357,3 +357,51 @@ def curve_r2(data: Any, fits: tuple[tuple[str, FrictionFit], ...]) -> float:
         ps.append(fit.curve(v[ok]))
     y, p = np.concatenate(ys), np.concatenate(ps)
     return float(1.0 - np.sum((y - p) ** 2) / np.sum((y - y.mean()) ** 2))
+
+
+class _Test(Protocol):
+    direction: str
+
+
+InputsT = TypeVar("InputsT")
+StaticT = TypeVar("StaticT", bound=_Test)
+DynamicT = TypeVar("DynamicT", bound=_Test)
+
+
+@dataclass
+class FrictionData(Generic[InputsT, StaticT, DynamicT]):
+    """Everything a friction identification produced, test by test (rotary and linear).
+
+    Subclasses name the fields their test records keep the static level, the
+    dynamic speed and the dynamic friction in.
+
+    Attributes:
+        inputs: The GUI inputs.
+        p_atm_bar: Atmospheric pressure used for the command scale [bar].
+        seed: Seed of the random test positions and levels.
+        static: Static tests in order.
+        dynamic: Dynamic tests in order.
+    """
+
+    STATIC_FIELD: ClassVar[str]
+    SPEED_FIELD: ClassVar[str]
+    FRICTION_FIELD: ClassVar[str]
+
+    inputs: InputsT
+    p_atm_bar: float
+    seed: int
+    static: list[StaticT] = field(default_factory=list)
+    dynamic: list[DynamicT] = field(default_factory=list)
+
+    def arrays(self, direction: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(static levels, dynamic speeds, dynamic friction) of one direction."""
+        st = [getattr(s, self.STATIC_FIELD) for s in self.static if s.direction == direction]
+        dy = [d for d in self.dynamic if d.direction == direction]
+        return (np.array(st, dtype=np.float64), np.array([getattr(d, self.SPEED_FIELD) for d in dy], dtype=np.float64),
+                np.array([getattr(d, self.FRICTION_FIELD) for d in dy], dtype=np.float64))
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready view."""
+        return {"inputs": asdict(self.inputs), "p_atm_bar": self.p_atm_bar,  # type: ignore[call-overload]
+                "seed": self.seed, "static": [asdict(s) for s in self.static],  # type: ignore[call-overload]
+                "dynamic": [asdict(d) for d in self.dynamic]}  # type: ignore[call-overload]

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
@@ -34,7 +34,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from app.engine.hardware.base import Command
-from app.engine.ident.fitting import FrictionFit, breakaway_level, curve_r2, fit_friction
+from app.engine.ident.fitting import FrictionData, FrictionFit, breakaway_level, curve_r2, fit_friction
 from app.engine.ident.gui_rules import LinearInputs
 from app.engine.ident.procedure import Procedure, Script
 
@@ -84,25 +84,12 @@ class LinearDynamicTest:
 
 
 @dataclass
-class LinearFrictionData:
-    """Everything the linear experiments produced, test by test."""
+class LinearFrictionData(FrictionData[LinearInputs, LinearStaticTest, LinearDynamicTest]):
+    """Everything the linear experiments produced, test by test (``arrays``: F_s, v, F_f)."""
 
-    inputs: LinearInputs
-    p_atm_bar: float
-    seed: int
-    static: list[LinearStaticTest] = field(default_factory=list)
-    dynamic: list[LinearDynamicTest] = field(default_factory=list)
-
-    def arrays(self, direction: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(static F_s, dynamic v, dynamic F_f) of ``"extension"`` or ``"retraction"``."""
-        st = np.array([s.fs for s in self.static if s.direction == direction], dtype=np.float64)
-        dy = [d for d in self.dynamic if d.direction == direction]
-        return st, np.array([d.v for d in dy], dtype=np.float64), np.array([d.ff for d in dy], dtype=np.float64)
-
-    def as_dict(self) -> dict[str, Any]:
-        """JSON-ready view."""
-        return {"inputs": asdict(self.inputs), "p_atm_bar": self.p_atm_bar, "seed": self.seed,
-                "static": [asdict(s) for s in self.static], "dynamic": [asdict(d) for d in self.dynamic]}
+    STATIC_FIELD = "fs"
+    SPEED_FIELD = "v"
+    FRICTION_FIELD = "ff"
 
 
 class LinearFrictionProcedure(Procedure):

@@ -28,13 +28,14 @@ optimiser is not published, so this is our own, stated design:
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from app.engine.control import pipeline as cpl
+from app.engine.control.blocks import PRVController
 from app.engine.control.config import ControllerConfig
 from app.engine.hardware.base import Command
 from app.engine.ident.procedure import Procedure, Script
@@ -263,14 +264,11 @@ class PIDAutotuneProcedure(Procedure):
         super().__init__(vent_s=0.5)
         self.spec = spec
         self.progress.total_tests = 1
-        cfg = ControllerConfig(controller="pid", pw_bar=spec.pw_bar)
-        self.cp, _, self.fz = cfg.pack()
-        side = 0 if spec.side == "a" else 1
-        self.side = side
-        self.cp[cpl.P_KP + side], self.cp[cpl.P_KI + side], self.cp[cpl.P_KD + side] = spec.initial
-        self.cp[cpl.P_N] = spec.n_filter
-        self.p_atm = float(self.cp[cpl.P_PATM])
-        self.state = np.zeros(cpl.NSTATE)
+        self.side = 0 if spec.side == "a" else 1
+        cfg = ControllerConfig(controller="pid", pw_bar=spec.pw_bar, pid_gains=(spec.initial, spec.initial))
+        self.controller = PRVController(spec.side, "pid", cfg)
+        self.controller.cp[cpl.P_N] = spec.n_filter
+        self.p_atm = float(self.controller.cp[cpl.P_PATM])
         self.t: list[float] = []
         self.z: list[float] = []
         self.y: list[float] = []
@@ -294,10 +292,7 @@ class PIDAutotuneProcedure(Procedure):
         while self.meas.t - t0 < seconds - 0.5 * self.dt:
             m = self.meas
             pj = m.p_a if self.side == 0 else m.p_b
-            zr = cpl.prv_controller(self.side, cpl.H_PID, ref, pj, 0.0, self.state, self.cp, self.fz, self.dt)
-            self.state[cpl.S_INIT] = 1.0
-            self.state[cpl.S_H] = cpl.H_PID
-            z = zr + (self.perturbation(m.t - t0) if perturb else 0.0)
+            z = self.controller.step(ref, pj, self.dt) + (self.perturbation(m.t - t0) if perturb else 0.0)
             if record:
                 self.t.append(m.t - t0)
                 self.z.append(z)
@@ -362,7 +357,7 @@ class StepTestProcedure(PIDAutotuneProcedure):
 
     def __init__(self, spec: AutotuneSpec, gains: tuple[float, float, float], step_bar: float = 0.5,
                  hold_s: float = 6.0) -> None:
-        super().__init__(AutotuneSpec(**{**asdict(spec), "initial": gains}))
+        super().__init__(replace(spec, initial=gains))
         self.step_bar = step_bar
         self.hold_s = hold_s
 

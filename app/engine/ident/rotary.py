@@ -34,14 +34,14 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
 import numpy as np
 
 from app.engine.hardware.base import Command
-from app.engine.ident.fitting import FrictionFit, breakaway_level, curve_r2, fit_friction
+from app.engine.ident.fitting import FrictionData, FrictionFit, breakaway_level, curve_r2, fit_friction
 from app.engine.ident.gui_rules import RotaryInputs
 from app.engine.ident.procedure import Procedure, Script
 
@@ -112,34 +112,12 @@ class DynamicTest:
 
 
 @dataclass
-class RotaryFrictionData:
-    """Everything the rotary experiments produced (kept test by test).
+class RotaryFrictionData(FrictionData[RotaryInputs, StaticTest, DynamicTest]):
+    """Everything the rotary experiments produced, test by test (``arrays``: T_s, ω, T_f)."""
 
-    Attributes:
-        inputs: The GUI inputs.
-        p_atm_bar: Atmospheric pressure used for the command scale [bar].
-        seed: Seed of the random test positions and levels.
-        static: Static tests in order.
-        dynamic: Dynamic tests in order.
-    """
-
-    inputs: RotaryInputs
-    p_atm_bar: float
-    seed: int
-    static: list[StaticTest] = field(default_factory=list)
-    dynamic: list[DynamicTest] = field(default_factory=list)
-
-    def arrays(self, direction: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(static T_s, dynamic ω, dynamic T_f) of ``"ccw"`` or ``"cw"``."""
-        st = np.array([s.ts for s in self.static if s.direction == direction], dtype=np.float64)
-        dy = [d for d in self.dynamic if d.direction == direction]
-        return (st, np.array([d.omega for d in dy], dtype=np.float64),
-                np.array([d.tf for d in dy], dtype=np.float64))
-
-    def as_dict(self) -> dict[str, Any]:
-        """JSON-ready view."""
-        return {"inputs": asdict(self.inputs), "p_atm_bar": self.p_atm_bar, "seed": self.seed,
-                "static": [asdict(s) for s in self.static], "dynamic": [asdict(d) for d in self.dynamic]}
+    STATIC_FIELD = "ts"
+    SPEED_FIELD = "omega"
+    FRICTION_FIELD = "tf"
 
 
 class RotaryFrictionProcedure(Procedure):

@@ -144,5 +144,4 @@ def identify_dcv_sim(model: str = "new", seed: int = 0, params: PlantParams | No
     cases = THESIS_VALIDATION + HELD_OUT if validation is None else validation
     vproc = CPRProcedure(inputs, fixed_s=15.0, cases=cases)
     vrun = simulate(vproc, params, DCV_RATE_HZ, seed=seed + 1, on_progress=on_progress)
-    vproc.data.p_atm_bar = proc.data.p_atm_bar
     return est, run, vrun, est.validate(vproc.data)
