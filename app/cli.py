@@ -140,12 +140,14 @@ def _identify(args: argparse.Namespace) -> int:
         out = res.contract()
         detail = {"ccw": res.ccw.as_dict(), "cw": res.cw.as_dict()}
     elif args.rig == "linear":
-        from app.engine.params import PlantParams
+        from app.engine.params import DCVParams, PlantParams
 
-        cyl = PlantParams.linear_rig(args.cylinder).linear
+        plant = PlantParams.linear_rig(args.cylinder,  # type: ignore[arg-type]
+                                       dcv=DCVParams.with_null_zone() if args.null_zone else DCVParams())
+        cyl = plant.linear
         assert cyl is not None
         LinearInputs(cyl.stroke * 1e3, cyl.bore * 1e3, cyl.rod * 1e3, args.ns, args.nd)
-        res, run = runner.identify_linear_sim(args.cylinder, args.ns, args.nd, seed=args.seed,
+        res, run = runner.identify_linear_sim(args.cylinder, args.ns, args.nd, seed=args.seed, params=plant,
                                               on_progress=_progress_printer(args.progress))
         out = res.contract()
         detail = {"extension": res.extension.as_dict(), "retraction": res.retraction.as_dict(),
@@ -331,6 +333,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     i.add_argument("--pm", type=float, default=60.0, help="pid: target phase margin [deg]")
     i.add_argument("--dcv-model", choices=("new", "iso"), default="iso",
                    help="dcv: the simulated valve (iso: ISO 6358 with underlaps; new: Eq 3.10–3.11 with known maps)")
+    i.add_argument("--null-zone", action="store_true",
+                   help="linear: simulate the DCVs with the null-zone leakage calibrated on thesis 3.2.4's speeds")
     i.add_argument("--ns", type=int, default=100, help="static experiments per direction (>= 30)")
     i.add_argument("--nd", type=int, default=100, help="dynamic experiments per direction (>= 30)")
     i.add_argument("--seed", type=int, default=0)

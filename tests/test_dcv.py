@@ -28,7 +28,7 @@ from app.engine.ident.dcv import (
     standard_flow,
 )
 from app.engine.ident.runner import DCV_RATE_HZ, identify_dcv_sim, simulate
-from app.engine.params import ParameterError, PlantParams, conductance_si
+from app.engine.params import DCVParams, ParameterError, PlantParams, conductance_si
 from app.engine.physics.flow import interp2_clip, interp_clip, new_model_flow
 from app.engine.physics.plant import derive_new_model_maps_cached
 
@@ -145,7 +145,7 @@ def new_valve() -> Any:
     p = run.params
     d = p.dcv
     maps = derive_new_model_maps_cached(conductance_si(d.c), d.b, d.underlap_fill_v, d.underlap_exh_v,
-                                        p.p_atm, p.t_atm)
+                                        p.p_atm, p.t_atm, d.null_leak_fraction, d.null_width_v)
     return est, run, cases, maps
 
 
@@ -249,3 +249,35 @@ def test_identify_dcv_cli_on_the_iso_valve_writes_plots(tmp_path: Any, capsys: p
     assert len(out["fit"]["filling"]["table_4_1"]) >= 8
     for name in ("cpr.png", "flow_fit.png", "validation_thesis.png", "validation_held_out.png", "dcv.json"):
         assert (tmp_path / name).stat().st_size > 1000
+
+
+# --------------------------------------------------------------------------- null zone (thesis 2.1, 3.2.4)
+
+
+@settings(max_examples=60, deadline=None)
+@given(u=st.floats(0.0, 10.0), s0=st.floats(0.01, 1.0), w=st.floats(0.05, 3.0))
+def test_null_zone_scales_both_paths_alike(u: float, s0: float, w: float) -> None:
+    """The attenuation multiplies fill and exhaust openings by one factor in (0, 1], largest far from 5 V."""
+    from app.engine.physics.dcv_maps import openings
+    from app.engine.physics.flow import null_scale
+
+    f0, e0 = openings(u, 0.7, 0.3)
+    f, e = openings(u, 0.7, 0.3, s0, w)
+    s = null_scale(u, s0, w)
+    assert s0 - 1e-12 <= s <= 1.0
+    assert f == pytest.approx(s * f0) and e == pytest.approx(s * e0)
+    assert null_scale(5.0 + 1.01 * w, s0, w) == 1.0
+    assert null_scale(u, s0, w) <= null_scale(5.0 + (abs(u - 5.0) + 0.1) * (1 if u >= 5 else -1), s0, w) + 1e-12
+
+
+def test_null_zone_leaves_the_cpr_maps_unchanged() -> None:
+    """CPR is a ratio of the two paths' flows, so a common scale must not move it (it only slows the approach)."""
+    from app.engine.physics.dcv_maps import derive_new_model_maps
+
+    d = DCVParams.with_null_zone()
+    args = (conductance_si(d.c), d.b, d.underlap_fill_v, d.underlap_exh_v, 101325.0, 293.15)
+    plain = derive_new_model_maps(*args)
+    nz = derive_new_model_maps(*args, d.null_leak_fraction, d.null_width_v)
+    assert np.allclose(nz.a_fill, plain.a_fill, atol=1e-4) and np.allclose(nz.a_exh, plain.a_exh, atol=1e-4)
+    i5 = int(np.argmin(np.abs(nz.u_grid - 5.0)))
+    assert nz.g_fill[i5] == pytest.approx(d.null_leak_fraction * plain.g_fill[i5], rel=1e-6)

@@ -23,7 +23,7 @@ from scipy.optimize import brentq
 
 from app.engine import tables
 from app.engine.constants import BAR, CP_AIR
-from app.engine.physics.flow import area_fraction, iso6358_flow
+from app.engine.physics.flow import area_fraction, iso6358_flow, null_scale
 
 
 @dataclass(frozen=True)
@@ -63,10 +63,12 @@ class NewModelMaps:
     u_switch: float
 
 
-def openings(u: float, underlap_fill_v: float, underlap_exh_v: float) -> tuple[float, float]:
-    """(fill, exhaust) area fractions of port 2 at command ``u`` [V]."""
-    f = float(area_fraction(5.0 + underlap_fill_v - u))
-    e = float(area_fraction(u - (5.0 - underlap_exh_v)))
+def openings(u: float, underlap_fill_v: float, underlap_exh_v: float, null_s0: float = 1.0,
+             null_width_v: float = 0.0) -> tuple[float, float]:
+    """(fill, exhaust) effective area fractions of port 2 at command ``u`` [V] (see :func:`null_scale`)."""
+    s = null_scale(u, null_s0, null_width_v)
+    f = s * float(area_fraction(5.0 + underlap_fill_v - u))
+    e = s * float(area_fraction(u - (5.0 - underlap_exh_v)))
     return f, e
 
 
@@ -77,7 +79,8 @@ def _net_iso(p: float, ps: float, f: float, e: float, c: float, b: float, p_atm:
 
 
 def derive_new_model_maps(
-    c_si: float, b: float, underlap_fill_v: float, underlap_exh_v: float, p_atm: float, t: float
+    c_si: float, b: float, underlap_fill_v: float, underlap_exh_v: float, p_atm: float, t: float,
+    null_s0: float = 1.0, null_width_v: float = 0.0,
 ) -> NewModelMaps:
     """Build the new-model maps that best mimic the ISO valve (see module doc).
 
@@ -88,13 +91,15 @@ def derive_new_model_maps(
         underlap_exh_v: Exhausting underlap [V].
         p_atm: Atmospheric pressure [Pa].
         t: Gas temperature [K].
+        null_s0: Null-zone flow scale at 5 V [-] (:func:`~app.engine.physics.flow.null_scale`).
+        null_width_v: Null-zone half width [V].
     """
     u_grid = np.round(np.arange(0.0, 10.0001, 0.1), 10)
     ps_grid = np.arange(2.0, 7.0001, 1.0)
     a_f = np.ones((u_grid.size, ps_grid.size))
     a_e = np.ones_like(a_f)
     for i, u in enumerate(u_grid):
-        f, e = openings(float(u), underlap_fill_v, underlap_exh_v)
+        f, e = openings(float(u), underlap_fill_v, underlap_exh_v, null_s0, null_width_v)
         for j, ps_bar in enumerate(ps_grid):
             ps = float(ps_bar) * BAR
             if f <= 0.0:
@@ -114,7 +119,7 @@ def derive_new_model_maps(
     ps = float(5.0 * BAR)
     j5 = int(np.argmin(np.abs(ps_grid - 5.0)))
     for i, u in enumerate(u_grid):
-        f, e = openings(float(u), underlap_fill_v, underlap_exh_v)
+        f, e = openings(float(u), underlap_fill_v, underlap_exh_v, null_s0, null_width_v)
         p_lo, p_hi = p_atm, ps
         pr = np.linspace(p_lo, p_hi, 41)
         q = np.array([_net_iso(p, ps, f, e, c_si, b, p_atm, t) for p in pr])

@@ -182,6 +182,29 @@ def new_model_flow(
     return q, dq_dd * a, -dq_dd
 
 
+@njit(cache=True, error_model="numpy")
+def null_scale(u: float, s0: float, width_v: float) -> float:
+    """Flow scale of both port paths of the MPYE at command ``u`` [V] (1 = unattenuated).
+
+    The thesis's valve has a zero-flow region around 5 V (Δu_null, thesis
+    2.1) and yet its CPR maps show both paths leaking across 4.5–5.9 V:
+    inside that band the spool lands still overlap, so what flows is
+    clearance leakage, far smaller than the orifice flow the same spool
+    displacement gives outside it. The thesis's linear rig confirms the
+    magnitude: on 25 mm bores 4.2 → 5 V gave 1 → 0 m/s (thesis 3.2.4). Both
+    paths share the scale, so the CPR (a ratio of the two) is unchanged.
+
+    Args:
+        u: Valve command, port-2 convention [V].
+        s0: Scale at 5 V [-] (0 < s0 ≤ 1; 1 switches the attenuation off).
+        width_v: Distance from 5 V at which the scale reaches 1 [V].
+    """
+    if width_v <= 0.0:
+        return 1.0
+    r = min(abs(u - 5.0) / width_v, 1.0)
+    return s0 + (1.0 - s0) * r * r
+
+
 def area_fraction(displacement_v: np.ndarray | float) -> np.ndarray:
     """MPYE spool-area fraction against spool displacement from closed [V]."""
     return np.interp(displacement_v, tables.MPYE_DISPLACEMENT_V, tables.MPYE_AREA_FRACTION, left=0.0, right=1.0)

@@ -42,7 +42,7 @@ from app.engine import tables
 from app.engine.constants import BAR, CP_AIR, CV_AIR, R_AIR
 from app.engine.params import PlantParams, RotaryFriction, conductance_si
 from app.engine.physics.dcv_maps import derive_new_model_maps
-from app.engine.physics.flow import interp2_clip, interp_clip, iso6358_signed, new_model_flow, polyval
+from app.engine.physics.flow import interp2_clip, interp_clip, iso6358_signed, new_model_flow, null_scale, polyval
 
 # ----------------------------------------------------------------- state layout
 I_POS = 0  # θ [rad] or x [m]
@@ -85,7 +85,7 @@ _KERNEL_FIELDS = (
     "lugre_on", "sigma0", "sigma1",
     "p_atm", "t_atm",
     "prv_cs", "prv_bs", "prv_ce", "prv_be", "prv_gain", "prv_tau", "prv_db_on", "prv_db_off", "prv_vol", "z_max",
-    "dcv_new", "dcv_c", "dcv_b", "ul_f", "ul_e", "mp",
+    "dcv_new", "dcv_c", "dcv_b", "ul_f", "ul_e", "null_s0", "null_w", "mp",
     "nm_u", "nm_ps", "nm_af", "nm_ae", "nm_ef", "nm_ee", "nm_gf", "nm_ge", "nm_kf", "nm_ke", "nm_usw",
     "ps0", "droop_on", "droop_r", "droop_tau",
     "vl_c", "vl_b", "el_c", "el_b",
@@ -145,7 +145,8 @@ def _build_kernel_cached(p: PlantParams) -> Any:
     pre = eff.presliding_friction
     dcv = p.dcv
     dcv_c = conductance_si(dcv.c)
-    maps = derive_new_model_maps_cached(dcv_c, dcv.b, dcv.underlap_fill_v, dcv.underlap_exh_v, p.p_atm, p.t_atm)
+    maps = derive_new_model_maps_cached(dcv_c, dcv.b, dcv.underlap_fill_v, dcv.underlap_exh_v, p.p_atm, p.t_atm,
+                                        dcv.null_leak_fraction, dcv.null_width_v)
     tube = eff.tube_dynamics
     if tube is not None:
         tube_vol = math.pi * tube.diameter**2 / 4.0 * tube.length
@@ -167,7 +168,7 @@ def _build_kernel_cached(p: PlantParams) -> Any:
         prv_db_on=p.prv.deadband_on_bar * BAR, prv_db_off=p.prv.deadband_off_bar * BAR,
         prv_vol=p.prv.outlet_volume, z_max=p.prv.z_max_v,
         dcv_new=dcv.model == "new", dcv_c=dcv_c, dcv_b=dcv.b,
-        ul_f=dcv.underlap_fill_v, ul_e=dcv.underlap_exh_v,
+        ul_f=dcv.underlap_fill_v, ul_e=dcv.underlap_exh_v, null_s0=dcv.null_leak_fraction, null_w=dcv.null_width_v,
         mp=np.ascontiguousarray(np.vstack([tables.MPYE_DISPLACEMENT_V, tables.MPYE_AREA_FRACTION])),
         nm_u=maps.u_grid, nm_ps=maps.ps_grid_bar, nm_af=maps.a_fill, nm_ae=maps.a_exh,
         nm_ef=maps.eps_fill, nm_ee=maps.eps_exh, nm_gf=maps.g_fill, nm_ge=maps.g_exh,
@@ -190,9 +191,10 @@ def _build_kernel_cached(p: PlantParams) -> Any:
 
 
 @lru_cache(maxsize=16)
-def derive_new_model_maps_cached(c: float, b: float, ulf: float, ule: float, p_atm: float, t: float) -> Any:
+def derive_new_model_maps_cached(c: float, b: float, ulf: float, ule: float, p_atm: float, t: float,
+                                 null_s0: float = 1.0, null_w: float = 0.0) -> Any:
     """Memoised :func:`derive_new_model_maps` (it solves ~600 equilibria)."""
-    return derive_new_model_maps(c, b, ulf, ule, p_atm, t)
+    return derive_new_model_maps(c, b, ulf, ule, p_atm, t, null_s0, null_w)
 
 
 # ----------------------------------------------------------------- helpers
@@ -407,8 +409,9 @@ def pneumatic_flows(
                 q, d1, d2 = new_model_flow(p[n_d], patm, 1.0, ps_bar, a, eps, g, 0.0, kps, tn[n_d])
                 _edge(n_d, -1, q, d1, d2, f, jac)
         else:
-            fr_f = area_frac(5.0 + k.ul_f - u, k.mp)
-            fr_e = area_frac(u - (5.0 - k.ul_e), k.mp)
+            s_null = null_scale(u, k.null_s0, k.null_w)
+            fr_f = s_null * area_frac(5.0 + k.ul_f - u, k.mp)
+            fr_e = s_null * area_frac(u - (5.0 - k.ul_e), k.mp)
             if fr_f > 0.0:
                 q, d1, d2 = iso6358_signed(p[n_o], p[n_d], k.dcv_c * fr_f, k.dcv_b, tn[n_o], tn[n_d])
                 _edge(n_o, n_d, q, d1, d2, f, jac)
