@@ -29,16 +29,11 @@ def _plt() -> Any:
     return plt
 
 
-def radar_chart(title: str, values: dict[str, dict[str, float]], path_stem: Path) -> list[Path]:
-    """Radar chart of the six metrics for the three controllers (thesis Fig 4.26).
+def radar_figure(title: str, values: dict[str, dict[str, float]]) -> Any:
+    """Radar chart of the six metrics per controller (thesis Fig 4.26) as a matplotlib figure.
 
     Each axis is scaled by the largest value among the controllers, so the
-    worst controller touches the rim; the raw values are in the tick labels,
-    and the whole table is embedded as JSON in the files' metadata
-    (PNG text chunk ``cwrr:metrics``, SVG ``Description``).
-
-    Returns:
-        The PNG and SVG paths.
+    worst controller touches the rim; the raw maxima are in the tick labels.
     """
     plt = _plt()
     ang = np.linspace(0.0, 2.0 * np.pi, len(METRICS), endpoint=False)
@@ -56,6 +51,18 @@ def radar_chart(title: str, values: dict[str, dict[str, float]], path_stem: Path
     ax.set_title(title, fontsize=10)
     ax.legend(loc="lower center", bbox_to_anchor=(0.5, -0.18), ncol=3, fontsize=8)
     fig.tight_layout()
+    return fig
+
+
+def radar_chart(title: str, values: dict[str, dict[str, float]], path_stem: Path) -> list[Path]:
+    """:func:`radar_figure` saved as PNG and SVG, the table embedded as JSON in the
+    files' metadata (PNG text chunk ``cwrr:metrics``, SVG ``Description``).
+
+    Returns:
+        The PNG and SVG paths.
+    """
+    plt = _plt()
+    fig = radar_figure(title, values)
     payload = json.dumps(values, sort_keys=True)
     png = path_stem.with_suffix(".png")
     svg = path_stem.with_suffix(".svg")

@@ -39,8 +39,8 @@ def test_sim_writes_run_log(tmp_path) -> None:
     assert meta["rig"] == "rotary" and meta["human"] is True
 
 
-def test_health_and_openapi_with_lifespan() -> None:
-    app = create_app(Settings(rate_hz=200.0))
+def test_health_and_openapi_with_lifespan(tmp_path) -> None:
+    app = create_app(Settings(rate_hz=200.0, data_dir=str(tmp_path), viser_port=0))
     with TestClient(app) as c:
         import time
 
@@ -49,7 +49,7 @@ def test_health_and_openapi_with_lifespan() -> None:
         while h["ticks"] <= 10 and time.monotonic() < deadline:
             time.sleep(0.1)
             h = c.get("/api/health").json()
-        assert h["state"] == "running" and h["backend"] == "sim" and h["ticks"] > 10
+        assert h["state"] == "idle" and h["backend"] == "sim" and h["ticks"] > 10
         assert "jitter_p99_ms" in h and "overruns" in h
         assert "/api/health" in c.get("/openapi.json").json()["paths"]
         assert c.get("/").status_code == 200

@@ -1,75 +1,77 @@
-"""Application factory: lifespan owns the engine; routers stay thin."""
+"""Application factory: the lifespan owns the station, the store and the live plots; routers stay thin."""
 
 from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Annotated
 
-from fastapi import Depends, FastAPI, Request
-from fastapi.responses import FileResponse
+from fastapi import FastAPI, Request
+from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
-from pydantic import BaseModel
 
+from app.api.models import ViserInfo
+from app.api.routers import engine, params, runs
 from app.api.settings import Settings
-from app.engine.service import Station
+from app.engine.params import ParameterError
+from app.engine.station import Station, TransitionError
+from app.storage import Store
 
 STATIC = Path(__file__).resolve().parent.parent / "static"
 
 
-class Health(BaseModel):
-    """Engine health.
-
-    Attributes:
-        state: Engine state.
-        backend: Backend name.
-        rate_hz: Nominal loop rate [Hz].
-        measured_rate_hz: Achieved rate [Hz].
-        ticks: Periods executed.
-        overruns: Periods that missed their deadline.
-        jitter_p50_ms: Median start jitter [ms].
-        jitter_p99_ms: 99th-percentile start jitter [ms].
-        jitter_max_ms: Largest start jitter [ms].
-    """
-
-    state: str
-    backend: str
-    rate_hz: float
-    measured_rate_hz: float
-    ticks: int
-    overruns: int
-    jitter_p50_ms: float
-    jitter_p99_ms: float
-    jitter_max_ms: float
-
-
-def get_station(request: Request) -> Station:
-    """The app's engine (a dependency, so tests can override it)."""
-    station: Station = request.app.state.station
-    return station
-
-
 def create_app(settings: Settings | None = None) -> FastAPI:
-    """Build the app; the engine starts and stops with the lifespan."""
+    """Build the app; the engine, store and viser server start and stop with the lifespan."""
     settings = settings or Settings()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        station = Station(rate_hz=settings.rate_hz)
-        app.state.station = station
+        store = Store(settings.db_url)
+        station = Station(data_dir=settings.data_dir, sink=store, rate_hz=settings.rate_hz)
+        app.state.store, app.state.station = store, station
+        plots = None
         if settings.start_engine:
-            station.start()
+            if settings.auto_connect:
+                station.connect()
+            if settings.viser_port:
+                from app.api.liveplots import LivePlots
+
+                plots = LivePlots(station, settings.host, settings.viser_port, store)
+                plots.start()
+        app.state.plots = plots
         try:
             yield
         finally:
-            station.stop()
+            if plots is not None:
+                plots.stop()
+            station.close()
+            store.close()
 
-    app = FastAPI(title="CWRR Lab Station", version="0.1.0", lifespan=lifespan)
+    app = FastAPI(title="CWRR Lab Station", version="0.2.0", lifespan=lifespan,
+                  description="Control station of the pneumatic wrist/forearm rehabilitation robot (CWRR).")
 
-    @app.get("/api/health", response_model=Health, summary="Engine state, loop rate, jitter and overruns")
-    def health(station: Annotated[Station, Depends(get_station)]) -> Health:
-        return Health(**station.health())
+    @app.exception_handler(TransitionError)
+    async def conflict(request: Request, exc: TransitionError) -> JSONResponse:
+        return JSONResponse(status_code=409, content={"detail": str(exc), "state": exc.state.value})
+
+    @app.exception_handler(ParameterError)
+    async def invalid(request: Request, exc: ParameterError) -> JSONResponse:
+        field, _sep, msg = str(exc).partition(": ")
+        if not msg:
+            field, msg = "body", str(exc)
+        return JSONResponse(status_code=422, content={"detail": [{"loc": ["body", field], "msg": msg,
+                                                                  "type": "value_error"}]})
+
+    app.include_router(engine.router)
+    app.include_router(runs.router)
+    app.include_router(params.router)
+
+    @app.get("/api/viser", tags=["engine"], response_model=ViserInfo, summary="Where the live plots are served")
+    def viser_url(request: Request) -> ViserInfo:
+        if getattr(request.app.state, "plots", None) is None:
+            return ViserInfo(url=None)
+        host = request.url.hostname or settings.host
+        return ViserInfo(url=f"http://{host}:{settings.viser_port}")
 
     @app.get("/", include_in_schema=False)
     def index() -> FileResponse:

@@ -31,7 +31,7 @@ from typing import Any, Literal
 import numpy as np
 
 from app.engine.control.config import ControllerConfig, ControllerName
-from app.engine.human import isotonic
+from app.engine.human import HumanProgram, isotonic
 from app.engine.metrics import all_metrics
 from app.engine.params import ParameterError, PlantParams, check_range
 from app.engine.sim import WorkoutResult, run_workout
@@ -169,6 +169,65 @@ def _case_seed(seed: int, case: Case) -> int:
     return int(np.random.SeedSequence([seed, idx]).generate_state(1)[0])
 
 
+def case_program(case: Case, settings: ScenarioSettings | None = None) -> tuple[HumanProgram, float, float | None]:
+    """The simulated user's program for ``case``.
+
+    Returns:
+        (program, t_end, t_d): the program (time 0 = run start), the end of the
+        rotation [s] and the disturbance time [s] (SC-3/SC-4, else None).
+    """
+    s = settings or ScenarioSettings()
+    direction = 1 if case.target > 0 else -1
+    t_d = s.t_engage + s.t_dist_after if case.scenario in ("SC-3", "SC-4") else None
+    prog = isotonic(direction, speed=s.speed, amplitude=math.radians(s.amplitude_deg), t_engage=s.t_engage,
+                    hold=1.0, repetitions=1, rest=1.0,
+                    disturbance_at=t_d if case.scenario == "SC-3" else None,
+                    disturbance_speed=s.dist_speed, disturbance_duration=s.dist_duration)
+    return prog, float(prog.t[-4]), t_d  # t[-4]: the far end of the rotation is reached
+
+
+def case_controller(case: Case, controller: ControllerName, settings: ScenarioSettings | None = None
+                    ) -> ControllerConfig:
+    """The controller configuration a case runs with."""
+    s = settings or ScenarioSettings()
+    return ControllerConfig(controller=controller, target_nm=abs(case.target), pw_bar=s.pw_bar,
+                            pdra=case.pdra, tdra=case.tdra)
+
+
+def score_case(case: Case, t: np.ndarray, torque: np.ndarray, mode: np.ndarray, t_end: float,
+               t_d: float | None, settings: ScenarioSettings | None = None
+               ) -> tuple[dict[str, float], tuple[float, float], float]:
+    """The six metrics of a case over its evaluation window (module doc).
+
+    Args:
+        case: The case.
+        t: Sample times from the run's start [s].
+        torque: Measured interaction torque [N·m].
+        mode: Intention-detector state per sample (0, 1 CCW, 2 CW).
+        t_end: End of the rotation [s].
+        t_d: Disturbance time [s] or None.
+        settings: Workout shape.
+
+    Returns:
+        (metrics, window, t_engage).
+    """
+    s = settings or ScenarioSettings()
+    e = case.target - torque
+    want = 1 if case.target > 0 else 2
+    engaged = np.flatnonzero((mode == want) & (t >= s.t_engage - 0.5))
+    t_on = float(t[engaged[0]]) if engaged.size else float("nan")
+    if t_d is not None:
+        t0 = t_d
+    elif engaged.size:
+        inband = np.flatnonzero((t >= t_on) & (np.abs(e) <= s.conv_band * abs(case.target)))
+        t0 = float(t[inband[0]]) if inband.size else t_on + s.conv_timeout
+        t0 = min(t0, t_on + s.conv_timeout)
+    else:
+        t0 = s.t_engage + s.conv_timeout
+    w = (t >= t0) & (t <= t_end)
+    return all_metrics(t[w], e[w]), (t0, t_end), t_on
+
+
 def run_case(
     case: Case,
     controller: ControllerName,
@@ -186,39 +245,17 @@ def run_case(
         params: Plant parameters (the faithful default if omitted).
     """
     s = settings or ScenarioSettings()
-    direction = 1 if case.target > 0 else -1
-    t_d = s.t_engage + s.t_dist_after if case.scenario in ("SC-3", "SC-4") else None
-    prog = isotonic(direction, speed=s.speed, amplitude=math.radians(s.amplitude_deg), t_engage=s.t_engage,
-                    hold=1.0, repetitions=1, rest=1.0,
-                    disturbance_at=t_d if case.scenario == "SC-3" else None,
-                    disturbance_speed=s.dist_speed, disturbance_duration=s.dist_duration)
-    t_end = float(prog.t[-4])  # end of the rotation: the far end is reached
+    prog, t_end, t_d = case_program(case, s)
     duration = t_end + 0.5
     n = int(round(duration * s.rate_hz))
     dist = None
     if case.scenario == "SC-4" and t_d is not None:
         dist = np.zeros((n, 2))
         dist[int(round(t_d * s.rate_hz)):, 1] = s.dp_b_bar
-    cfg = ControllerConfig(controller=controller, target_nm=abs(case.target), pw_bar=s.pw_bar,
-                           pdra=case.pdra, tdra=case.tdra)
-    res = run_workout(params, prog, duration=duration, rate_hz=s.rate_hz, control=cfg,
+    res = run_workout(params, prog, duration=duration, rate_hz=s.rate_hz, control=case_controller(case, controller, s),
                       seed=_case_seed(seed, case), disturbance_bar=dist)
-    t = res.column("t")
-    e = case.target - res.column("torque")
-    mode = res.column("mode")
-    want = 1 if direction > 0 else 2
-    engaged = np.flatnonzero((mode == want) & (t >= s.t_engage - 0.5))
-    t_on = float(t[engaged[0]]) if engaged.size else float("nan")
-    if t_d is not None:
-        t0 = t_d
-    elif engaged.size:
-        inband = np.flatnonzero((t >= t_on) & (np.abs(e) <= s.conv_band * abs(case.target)))
-        t0 = float(t[inband[0]]) if inband.size else t_on + s.conv_timeout
-        t0 = min(t0, t_on + s.conv_timeout)
-    else:
-        t0 = s.t_engage + s.conv_timeout
-    w = (t >= t0) & (t <= t_end)
-    return CaseRun(case, controller, all_metrics(t[w], e[w]), (t0, t_end), t_on, t_d, res)
+    metrics, window, t_on = score_case(case, res.column("t"), res.column("torque"), res.column("mode"), t_end, t_d, s)
+    return CaseRun(case, controller, metrics, window, t_on, t_d, res)
 
 
 def iter_matrix(

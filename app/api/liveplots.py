@@ -1,0 +1,156 @@
+"""viser live plots: uPlot charts fed from the station's ring buffer, radar charts, a 3-D handle.
+
+A publisher thread copies the last :data:`WINDOW_S` seconds out of
+:class:`~app.engine.station.LiveBuffer` at :data:`PUBLISH_HZ` and pushes them
+to every connected browser; the engine loop never waits on a client.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from typing import Any
+
+import numpy as np
+
+from app.engine.station import LIVE_COLUMNS, Station
+
+PUBLISH_HZ = 25.0  # issue 5: 20–30 Hz
+WINDOW_S = 10.0
+MAX_POINTS = 1000  # per series and push; the 200/500 Hz buffer is decimated to this
+
+_COL = {c: i for i, c in enumerate(LIVE_COLUMNS)}
+
+
+def _series(label: str, color: str, dash: bool = False) -> Any:
+    s: dict[str, Any] = {"label": label, "stroke": color, "width": 2}
+    if dash:
+        s["dash"] = [6, 4]
+    return s
+
+
+class LivePlots:
+    """The viser server of the station.
+
+    Args:
+        station: The station whose live buffer is shown.
+        host: Bind address.
+        port: viser port.
+        store: Optional run store (radar charts compare its stored runs).
+    """
+
+    def __init__(self, station: Station, host: str, port: int, store: Any = None) -> None:
+        import viser
+
+        self.station = station
+        self.store = store
+        self.server = viser.ViserServer(host=host, port=port, label="CWRR live", verbose=False)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_run: Any = None
+        gui = self.server.gui
+        z = (np.zeros(2), np.zeros(2))
+        self.h_torque = gui.add_uplot(data=(np.zeros(2), np.zeros(2), np.zeros(2)),
+                                      series=({"label": "t [s]"}, _series("T_i [N·m]", "#1f77b4"),
+                                              _series("target [N·m]", "#d62728", dash=True)),
+                                      title="Interaction torque vs target", aspect=2.0)
+        self.h_press = gui.add_uplot(data=(np.zeros(2),) * 5,
+                                     series=({"label": "t [s]"}, _series("P_a [bar]", "#2ca02c"),
+                                             _series("P_a ref [bar]", "#2ca02c", dash=True),
+                                             _series("P_b [bar]", "#9467bd"),
+                                             _series("P_b ref [bar]", "#9467bd", dash=True)),
+                                     title="Chamber pressures vs references", aspect=2.0)
+        self.h_speed = gui.add_uplot(data=z, series=({"label": "t [s]"}, _series("ω [rad/s]", "#ff7f0e")),
+                                     title="Speed", aspect=2.5)
+        self.h_err = gui.add_uplot(data=z, series=({"label": "t [s]"}, _series("error [% of target]", "#8c564b")),
+                                   title="Tracking error", aspect=2.5)
+        self.h_metrics = gui.add_markdown("No finished run yet.")
+        self.h_radar: Any = None
+        scene = self.server.scene
+        scene.add_frame("/rig", show_axes=False)
+        scene.add_box("/rig/base", color=(120, 120, 130), dimensions=(0.12, 0.12, 0.06), position=(0.0, 0.0, -0.05))
+        self.h_handle = scene.add_box("/rig/handle", color=(30, 110, 200), dimensions=(0.03, 0.18, 0.03))
+
+    def start(self) -> None:
+        """Start publishing."""
+        self._thread = threading.Thread(target=self._run, name="cwrr-viser", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop publishing and the viser server."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+        self.server.stop()
+
+    def _run(self) -> None:
+        while not self._stop.wait(1.0 / PUBLISH_HZ):
+            try:
+                self.publish()
+            except Exception:  # a plotting hiccup must never take the publisher down
+                continue
+
+    def publish(self) -> None:
+        """Push the latest window to every client (one call; the thread calls it at :data:`PUBLISH_HZ`)."""
+        rows = self.station.live.since(-1.0, 15000)
+        if len(rows) >= 2:
+            rows = rows[rows[:, 0] >= rows[-1, 0] - WINDOW_S]
+            step = max(1, len(rows) // MAX_POINTS)
+            r = rows[::step]
+            t = r[:, _COL["t"]]
+            tq, tgt = r[:, _COL["torque"]], r[:, _COL["target"]]
+            self.h_torque.data = (t, tq, tgt)
+            self.h_press.data = (t, r[:, _COL["p_a"]], r[:, _COL["p_ref_a"]], r[:, _COL["p_b"]], r[:, _COL["p_ref_b"]])
+            self.h_speed.data = (t, r[:, _COL["omega"]])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                err = np.where(np.abs(tgt) > 0, 100.0 * (tgt - tq) / np.abs(tgt), np.nan)
+            self.h_err.data = (t, err)
+            th = float(rows[-1, _COL["theta"]])
+            self.h_handle.wxyz = (math.cos(th / 2.0), 0.0, 0.0, math.sin(th / 2.0))
+        last = self.station.last_run
+        if last is not None and last is not self._last_run:
+            self._last_run = last
+            self._show_run(last)
+
+    def _show_run(self, last: dict[str, Any]) -> None:
+        m = last.get("metrics")
+        if not m:
+            self.h_metrics.content = f"Run {last.get('run_id')}: {last.get('status')}"
+            return
+        rows = "\n".join(f"| {k} | {v:.4g} |" for k, v in m.items())
+        head = f"**Run {last.get('run_id')}** ({last.get('status')})"
+        self.h_metrics.content = f"{head}\n\n| metric | value |\n|---|---|\n{rows}"
+        values = self._latest_per_controller(last.get("run_id"))
+        if values:
+            img = radar_image(values)
+            if self.h_radar is None:
+                self.h_radar = self.server.gui.add_image(img, label="Metrics radar (latest run per controller)")
+            else:
+                self.h_radar.image = img
+
+    def _latest_per_controller(self, run_id: Any) -> dict[str, dict[str, float]]:
+        if self.store is None or run_id is None:
+            return {}
+        ref = self.store.run(int(run_id))
+        if ref is None or not ref.get("metrics"):
+            return {}
+        sc, tg = ref["spec"].get("scenario"), ref["spec"].get("target_nm")
+        out: dict[str, dict[str, float]] = {}
+        for r in self.store.runs(200, 0, "workout"):
+            s = r["spec"] or {}
+            if r.get("metrics") and s.get("scenario") == sc and s.get("target_nm") == tg \
+                    and s.get("controller") not in out:
+                out[s["controller"]] = r["metrics"]
+        return out
+
+
+def radar_image(values: dict[str, dict[str, float]]) -> np.ndarray:
+    """The thesis's radar chart rendered to an RGB array (uPlot has no polar plot)."""
+    from app.thesis_bench import _plt, radar_figure
+
+    plt = _plt()
+    fig = radar_figure("Six metrics, latest run per controller", values)
+    fig.canvas.draw()
+    img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    plt.close(fig)
+    return img

@@ -1,0 +1,83 @@
+"""The engine's state machine: connect, start, estimate, stop, disconnect, clear; live data."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from fastapi import APIRouter, Query
+
+from app.api.deps import StationDep
+from app.api.models import EngineStatus, Health, LiveData, RotaryIdentRequest, RunRequest, Started
+from app.engine.station import LIVE_COLUMNS, RunSpec
+
+router = APIRouter(prefix="/api", tags=["engine"])
+CONFLICT: dict[int | str, dict[str, Any]] = {409: {"description": "Illegal in the current state (says why)"}}
+
+
+@router.get("/health", response_model=Health, summary="Engine state, loop rate, jitter and overruns")
+def health(station: StationDep) -> Health:
+    return Health(**station.health())
+
+
+@router.get("/engine", response_model=EngineStatus, summary="State, allowed actions, progress")
+def status(station: StationDep) -> EngineStatus:
+    return EngineStatus(**station.status())
+
+
+@router.post("/engine/connect", response_model=EngineStatus, responses=CONFLICT, summary="disconnected → idle")
+def connect(station: StationDep) -> EngineStatus:
+    station.connect()
+    return EngineStatus(**station.status())
+
+
+@router.post("/engine/disconnect", response_model=EngineStatus, responses=CONFLICT, summary="idle → disconnected")
+def disconnect(station: StationDep) -> EngineStatus:
+    station.disconnect()
+    return EngineStatus(**station.status())
+
+
+@router.post("/engine/start", response_model=Started, responses=CONFLICT, summary="idle → running: a scenario run")
+def start(req: RunRequest, station: StationDep) -> Started:
+    spec = RunSpec(req.scenario, req.controller, req.target_nm, req.pw_bar, req.person, req.notes)
+    run_id = station.start(spec)
+    return Started(run_id=run_id, status=EngineStatus(**station.status()))
+
+
+@router.post("/engine/estimate", response_model=Started, responses=CONFLICT,
+             summary="idle → identifying: rotary friction identification (thesis 3.2.4, 500 Hz)")
+def estimate(req: RotaryIdentRequest, station: StationDep) -> Started:
+    from app.engine.ident.gui_rules import RotaryInputs
+    from app.engine.ident.rotary import RotaryFrictionEstimator, RotaryFrictionProcedure
+
+    inputs = RotaryInputs(req.rom_deg, req.vane_area_mm2, req.radius_mm, req.ns, req.nd, req.pw_bar)
+    proc = RotaryFrictionProcedure(inputs, seed=req.seed)
+
+    def fit(p: Any) -> dict[str, Any]:
+        res = RotaryFrictionEstimator(with_ci=False).fit(p.data).params_
+        assert res is not None
+        return {"parameters": res.contract(), "tests": {"static": len(p.data.static), "dynamic": len(p.data.dynamic)}}
+
+    run_id = station.estimate(proc, "rotary_friction", fit)
+    return Started(run_id=run_id, status=EngineStatus(**station.status()))
+
+
+@router.post("/engine/stop", response_model=EngineStatus, responses=CONFLICT,
+             summary="running/identifying → idle, keeping what was recorded")
+def stop(station: StationDep) -> EngineStatus:
+    station.stop()
+    return EngineStatus(**station.status())
+
+
+@router.post("/engine/clear", response_model=EngineStatus, responses=CONFLICT, summary="fault → disconnected")
+def clear(station: StationDep) -> EngineStatus:
+    station.clear()
+    return EngineStatus(**station.status())
+
+
+@router.get("/live", response_model=LiveData, summary="Samples newer than `since` from the live buffer")
+def live(station: StationDep, since: float = Query(-1.0, ge=-1.0, le=1e9, description="s"),
+         max_rows: int = Query(2000, ge=1, le=15000)) -> LiveData:
+    rows = station.live.since(since, max_rows)
+    out = [[None if not math.isfinite(v) else float(v) for v in r] for r in rows]
+    return LiveData(columns=list(LIVE_COLUMNS), rows=out, t_last=float(rows[-1, 0]) if len(rows) else since)

@@ -1,0 +1,565 @@
+"""The station: one backend, one paced engine thread, and the state machine the server drives.
+
+States (issue 5)::
+
+    disconnected ──connect──▶ idle ──start──▶ running ───┐
+          ▲                   │ ▲ ──estimate─▶ identifying ┤ stop / finished
+          └────disconnect─────┘ └──────── stopping ◀──────┘
+    any ──engine error──▶ fault (latched; ``clear`` → disconnected)
+
+While connected the engine thread always runs: idle periods send the
+backend's safe command; a run or an identification swaps its own
+controller in behind a :class:`Supervisor`, so the loop (read → estimate →
+control → safety → write) never changes shape. Finishing work — closing the
+log, scoring, storing — happens off the engine thread.
+
+Runs are logged with :class:`~app.engine.runlog.RunLogWriter` (fsync at
+least every 0.5 s of wall time) and reported to an optional
+:class:`RunSink` (the server's SQLite store).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from app.engine.control.config import ControllerName
+from app.engine.control.interaction import InteractionController
+from app.engine.hardware.base import Command, HardwareInterface, Measurement
+from app.engine.loop import Controller, Engine, WallClock
+from app.engine.params import ParameterError, PlantParams
+from app.engine.runlog import RunLogWriter
+from app.engine.scenarios import SCENARIOS, Case, ScenarioSettings, case_controller, case_program, score_case
+
+CONTROL_RATE_HZ = 200.0  # thesis 3.3
+ROTARY_IDENT_RATE_HZ = 500.0  # thesis 4.2.1
+PRESSURISE_S = 1.5  # both chambers brought to P_w before the user engages (as run_workout starts)
+
+
+class State(enum.StrEnum):
+    """Engine states."""
+
+    DISCONNECTED = "disconnected"
+    IDLE = "idle"
+    RUNNING = "running"
+    IDENTIFYING = "identifying"
+    STOPPING = "stopping"
+    FAULT = "fault"
+
+
+ALLOWED: dict[str, tuple[State, ...]] = {
+    "connect": (State.DISCONNECTED,),
+    "disconnect": (State.IDLE,),
+    "start": (State.IDLE,),
+    "estimate": (State.IDLE,),
+    "stop": (State.RUNNING, State.IDENTIFYING),
+    "clear": (State.FAULT,),
+}
+"""Which states each action is legal in."""
+
+_WHY: dict[State, str] = {
+    State.DISCONNECTED: "the rig is not connected; connect first",
+    State.IDLE: "nothing is running",
+    State.RUNNING: "a run is in progress; stop it first",
+    State.IDENTIFYING: "an identification is in progress; stop it first",
+    State.STOPPING: "the station is stopping; wait a moment",
+    State.FAULT: "a fault is latched; clear it first",
+}
+
+
+class TransitionError(RuntimeError):
+    """An action that is illegal in the current state (the API answers 409).
+
+    Attributes:
+        action: The refused action.
+        state: The state it was refused in.
+    """
+
+    def __init__(self, action: str, state: State) -> None:
+        self.action = action
+        self.state = state
+        super().__init__(f"cannot {action} while {state.value}: {_WHY[state]}")
+
+
+class RunSink(Protocol):
+    """Where finished (and started) runs are reported; the server's store implements it."""
+
+    def run_started(self, kind: str, spec: dict[str, Any], log_csv: str) -> int:
+        """Record a new run; returns its id."""
+        ...
+
+    def run_finished(self, run_id: int, status: str, metrics: dict[str, Any] | None,
+                     result: dict[str, Any] | None) -> None:
+        """Record how a run ended."""
+        ...
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """A scenario run as the therapist picks it.
+
+    Attributes:
+        scenario: ``"SC-1"`` … ``"SC-4"`` (thesis 4.4–4.7).
+        controller: ``"default"``, ``"pid"`` or ``"fuzzy"``.
+        target_nm: Signed target torque [N·m] (positive: pronation, CCW).
+        pw_bar: Working pressure [bar abs].
+        person: Pseudonymous id of the person exercising.
+        notes: Free text.
+    """
+
+    scenario: str = "SC-1"
+    controller: ControllerName = "pid"
+    target_nm: float = 1.2
+    pw_bar: float = 3.0
+    person: str = ""
+    notes: str = ""
+
+    def __post_init__(self) -> None:
+        if self.scenario not in SCENARIOS:
+            raise ParameterError(f"scenario: {self.scenario!r} must be one of {', '.join(SCENARIOS)}")
+        if not (0.1 <= abs(self.target_nm) <= 3.0) or not math.isfinite(self.target_nm):
+            raise ParameterError(f"target_nm: {self.target_nm} N·m must be within ±0.1–3 N·m")
+        if self.scenario in ("SC-3", "SC-4") and self.target_nm < 0:
+            raise ParameterError(f"target_nm: {self.scenario} is defined for pronation only (thesis 4.6–4.7), "
+                                 "so the target must be positive")
+        if not (1.5 <= self.pw_bar <= 6.0):
+            raise ParameterError(f"pw_bar: {self.pw_bar} bar must be within 1.5–6 bar abs")
+
+    @property
+    def case(self) -> Case:
+        """The scenario case (PDRA/TDRA as the scenario defines them)."""
+        on = self.scenario != "SC-1"
+        return Case(self.scenario, self.target_nm, on, on)
+
+
+LIVE_COLUMNS: tuple[str, ...] = ("t", "torque", "target", "p_a", "p_b", "p_ref_a", "p_ref_b", "omega", "theta")
+"""Columns of the live ring buffer (s, N·m, N·m, bar, bar, bar, bar, rad/s, rad)."""
+
+
+class LiveBuffer:
+    """Thread-safe ring buffer of recent samples for dashboards and plots.
+
+    The engine thread appends one row per period; readers copy slices.
+
+    Args:
+        seconds: History kept [s].
+        rate_hz: Rows per second.
+    """
+
+    def __init__(self, seconds: float = 30.0, rate_hz: float = CONTROL_RATE_HZ) -> None:
+        self.n = int(seconds * rate_hz)
+        self._a = np.zeros((self.n, len(LIVE_COLUMNS)))
+        self._i = 0  # rows written in total
+        self._lock = threading.Lock()
+
+    def append(self, row: tuple[float, ...]) -> None:
+        """Add one row in :data:`LIVE_COLUMNS` order."""
+        with self._lock:
+            self._a[self._i % self.n] = row
+            self._i += 1
+
+    def since(self, t: float, max_rows: int = 2000) -> np.ndarray:
+        """Rows newer than ``t`` [s], oldest first, at most ``max_rows`` (the newest)."""
+        with self._lock:
+            k = min(self._i, self.n)
+            idx = (np.arange(self._i - k, self._i)) % self.n
+            rows = self._a[idx].copy()
+        rows = rows[rows[:, 0] > t]
+        return rows[-max_rows:]
+
+    def clear(self) -> None:
+        """Forget everything (a new connection starts a new time axis)."""
+        with self._lock:
+            self._i = 0
+
+
+class Supervisor:
+    """The engine's only controller: delegates to the current job, else the safe command."""
+
+    def __init__(self, safe: Command) -> None:
+        self.safe = safe
+        self.job: Controller | None = None
+
+    def step(self, meas: Measurement, dt: float) -> Command:
+        """Commands for this period."""
+        job = self.job
+        return job.step(meas, dt) if job is not None else self.safe
+
+
+@dataclass
+class RunJob:
+    """A scenario run in progress: pressurise, then the interaction controller until the rotation ends.
+
+    Attributes:
+        spec: What was asked for.
+        controller: The interaction controller.
+        t_end: End of the rotation from the program start [s].
+        t_d: Disturbance time from the program start [s] or None.
+        on_program_start: Called once, with the rig time [s], at the end of
+            pressurising (starts the simulated user).
+        on_disturbance: Called once at the disturbance time (SC-4's PRV-b drop).
+    """
+
+    spec: RunSpec
+    controller: InteractionController
+    t_end: float
+    t_d: float | None
+    on_program_start: Callable[[float], None]
+    on_disturbance: Callable[[], None]
+    t0: float | None = None
+    t_prog: float | None = None
+    disturbed: bool = False
+    done: bool = False
+    rows: list[tuple[float, float, float]] = field(default_factory=list)
+
+    def step(self, meas: Measurement, dt: float) -> Command:
+        """One period of the run."""
+        if self.t0 is None:
+            self.t0 = meas.t
+        if self.done:
+            return Command(0.0, 0.0, 0.0, 10.0)
+        if self.t_prog is None:
+            if meas.t - self.t0 < PRESSURISE_S:
+                z = self.spec.pw_bar - 1.01325
+                return Command(z, z, 0.0, 10.0)
+            self.t_prog = meas.t
+            self.on_program_start(meas.t)
+        tr = meas.t - self.t_prog
+        if self.t_d is not None and not self.disturbed and tr >= self.t_d:
+            self.disturbed = True
+            self.on_disturbance()
+        cmd = self.controller.step(meas, dt)
+        self.rows.append((tr, meas.torque, float(self.controller.mode)))
+        if tr >= self.t_end + 0.5:
+            self.done = True
+        return cmd
+
+    @property
+    def fraction(self) -> float:
+        """Share of the run done [0, 1]."""
+        if self.t_prog is None or not self.rows:
+            return 0.0
+        return min(1.0, self.rows[-1][0] / (self.t_end + 0.5))
+
+
+class Station:
+    """Owns the backend and the engine thread; every action is a state transition.
+
+    Args:
+        backend_factory: Builds the backend for a connection, given the
+            engine's clock and period (simulator by default).
+        data_dir: Where run logs are written.
+        sink: Optional run store.
+        rate_hz: Control rate [Hz].
+    """
+
+    def __init__(
+        self,
+        backend_factory: Callable[[WallClock, float], HardwareInterface] | None = None,
+        data_dir: Path | str = "data",
+        sink: RunSink | None = None,
+        rate_hz: float = CONTROL_RATE_HZ,
+    ) -> None:
+        self.backend_factory = backend_factory or _sim_backend
+        self.data_dir = Path(data_dir)
+        self.sink = sink
+        self.rate_hz = rate_hz
+        self.live = LiveBuffer(rate_hz=ROTARY_IDENT_RATE_HZ)
+        self.clock = WallClock()
+        self.backend: HardwareInterface | None = None
+        self.engine: Engine | None = None
+        self.supervisor: Supervisor | None = None
+        self._state = State.DISCONNECTED
+        self._lock = threading.RLock()
+        self._job: RunJob | None = None
+        self._proc: Any = None
+        self._proc_kind = ""
+        self._proc_fit: Callable[[Any], dict[str, Any]] = dict
+        self._log: RunLogWriter | None = None
+        self._run_id: int | None = None
+        self.last_run: dict[str, Any] | None = None
+        self.fault_message = ""
+        self._watch: threading.Thread | None = None
+        self._watch_stop = threading.Event()
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def state(self) -> State:
+        """Current state (an engine error latches :attr:`State.FAULT`)."""
+        with self._lock:
+            if self.engine is not None and self.engine.error is not None and self._state != State.FAULT:
+                self.fault_message = f"{type(self.engine.error).__name__}: {self.engine.error}"
+                self._state = State.FAULT
+            return self._state
+
+    def allowed(self) -> list[str]:
+        """Actions legal now."""
+        st = self.state
+        return [a for a, ok in ALLOWED.items() if st in ok]
+
+    def _require(self, action: str) -> None:
+        st = self.state
+        if st not in ALLOWED[action]:
+            raise TransitionError(action, st)
+
+    # ---------------------------------------------------------------- actions
+
+    def connect(self) -> None:
+        """disconnected → idle: build and activate the backend, start the paced loop."""
+        with self._lock:
+            self._require("connect")
+            self.clock = WallClock()
+            backend = self.backend_factory(self.clock, 1.0 / self.rate_hz)
+            self.supervisor = Supervisor(backend.safe_command())
+            # The first read/step compiles the numba kernels (seconds on a fresh
+            # install); doing it here keeps that stall out of the loop's jitter.
+            warm = InteractionController()
+            warm.step(backend.read(), 1.0 / self.rate_hz)
+            backend.activate()
+            self.backend = backend
+            self.live.clear()
+            self._start_engine(self.rate_hz)
+            self._state = State.IDLE
+            self._watch_stop.clear()
+            self._watch = threading.Thread(target=self._watcher, name="cwrr-watch", daemon=True)
+            self._watch.start()
+
+    def disconnect(self) -> None:
+        """idle → disconnected: stop the loop, leave the rig safe."""
+        with self._lock:
+            self._require("disconnect")
+            self._shutdown()
+            self._state = State.DISCONNECTED
+
+    def start(self, spec: RunSpec) -> int | None:
+        """idle → running: a scenario run; returns the stored run id (None without a store)."""
+        with self._lock:
+            self._require("start")
+            assert self.backend is not None and self.supervisor is not None
+            settings = ScenarioSettings(pw_bar=spec.pw_bar)
+            case = spec.case
+            prog, t_end, t_d = case_program(case, settings)
+            ctl = InteractionController(case_controller(case, spec.controller, settings))
+            backend = self.backend
+            set_program = getattr(backend, "set_program", None)
+            set_dist = getattr(backend, "set_disturbance", None)
+
+            def program_start(t_rig: float) -> None:
+                if set_program is not None:  # the simulated user; a real person needs no cue here
+                    from app.engine.human import HumanProgram
+
+                    set_program(HumanProgram(prog.t + t_rig, prog.pos))  # programs run on rig time
+
+            def disturb() -> None:
+                if spec.scenario == "SC-4" and set_dist is not None:
+                    set_dist(0.0, settings.dp_b_bar)
+
+            job = RunJob(spec, ctl, t_end, t_d, program_start, disturb)
+            name = time.strftime("run-%Y%m%d-%H%M%S") + f"-{int(time.time() * 1e3) % 1000:03d}"
+            meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": 1.01325,
+                    "working_pressure_bar": spec.pw_bar, "experiment": "workout", "human": True,
+                    "backend": backend.name, **asdict(spec)}
+            self._log = RunLogWriter(self.data_dir / "runs", name, meta)
+            self._run_id = self.sink.run_started("workout", asdict(spec), str(self._log.csv_path)) \
+                if self.sink else None
+            self._job = job
+            assert self.engine is not None
+            self.engine.recorder = self._log
+            self.supervisor.job = job
+            self._state = State.RUNNING
+            return self._run_id
+
+    def estimate(self, procedure: Any, kind: str, fit: Callable[[Any], dict[str, Any]]) -> int | None:
+        """idle → identifying: run an identification procedure at its rate (rotary: 500 Hz).
+
+        Args:
+            procedure: A :class:`~app.engine.ident.procedure.Procedure`.
+            kind: Result kind (e.g. ``"rotary_friction"``).
+            fit: Turns the finished procedure into a JSON-able result.
+        """
+        with self._lock:
+            self._require("estimate")
+            assert self.backend is not None and self.supervisor is not None
+            set_program = getattr(self.backend, "set_program", None)
+            if set_program is not None:
+                from app.engine.human import HumanProgram
+
+                set_program(HumanProgram.absent())  # nobody holds the handle during identification
+            self._stop_engine()
+            self._proc, self._proc_kind, self._proc_fit = procedure, kind, fit
+            self._run_id = self.sink.run_started(kind, {"procedure": procedure.name}, "") if self.sink else None
+            self.supervisor.job = procedure
+            self._start_engine(ROTARY_IDENT_RATE_HZ)
+            self._state = State.IDENTIFYING
+            return self._run_id
+
+    def stop(self) -> None:
+        """running/identifying → stopping → idle: end the work early, keeping what was recorded."""
+        with self._lock:
+            self._require("stop")
+            if self._state == State.IDENTIFYING:
+                self._proc.cancel()  # the procedure vents and keeps its data; the watcher finishes it
+                self._state = State.STOPPING
+                return
+            self._finish_run("stopped")
+
+    def clear(self) -> None:
+        """fault → disconnected: acknowledge the fault, drop the backend."""
+        with self._lock:
+            self._require("clear")
+            self._shutdown()
+            self.fault_message = ""
+            self._state = State.DISCONNECTED
+
+    def close(self) -> None:
+        """Stop everything (server shutdown)."""
+        with self._lock:
+            if self._job is not None:
+                self._finish_run("interrupted")
+            if self._proc is not None:
+                self._proc.cancel()
+            self._shutdown()
+            self._state = State.DISCONNECTED
+
+    # --------------------------------------------------------------- reports
+
+    def status(self) -> dict[str, Any]:
+        """State, allowed actions and progress of the current work."""
+        st = self.state
+        out: dict[str, Any] = {"state": st.value, "allowed": self.allowed(), "run_id": self._run_id,
+                               "backend": self.backend.name if self.backend else None,
+                               "fault": self.fault_message, "progress": None, "last_run": self.last_run}
+        if self._job is not None:
+            out["progress"] = {"kind": "workout", "fraction": self._job.fraction,
+                               "phase": "pressurising" if self._job.t_prog is None else "exercising"}
+        elif self._proc is not None:
+            out["progress"] = {"kind": self._proc_kind, **self._proc.progress.as_dict()}
+        return out
+
+    def health(self) -> dict[str, Any]:
+        """Loop health for ``/api/health``."""
+        st = self.engine.stats() if self.engine is not None else None
+        base = asdict(st) if st is not None else {"ticks": 0, "overruns": 0, "jitter_p50_ms": 0.0,
+                                                  "jitter_p99_ms": 0.0, "jitter_max_ms": 0.0,
+                                                  "rate_hz": self.rate_hz, "measured_rate_hz": 0.0}
+        return {"state": self.state.value, "backend": self.backend.name if self.backend else "none", **base}
+
+    # -------------------------------------------------------------- internals
+
+    def _on_tick(self, meas: Measurement, cmd: Command) -> None:
+        job = self._job
+        if job is not None and job.t_prog is not None:
+            i = job.controller.internals()
+            self.live.append((meas.t, meas.torque, job.spec.target_nm, meas.p_a, meas.p_b, i["p_ref_a"],
+                              i["p_ref_b"], meas.omega, meas.theta))
+        else:
+            self.live.append((meas.t, meas.torque, math.nan, meas.p_a, meas.p_b, math.nan, math.nan,
+                              meas.omega, meas.theta))
+
+    def _start_engine(self, rate_hz: float) -> None:
+        assert self.backend is not None and self.supervisor is not None
+        if hasattr(self.backend, "period"):
+            self.backend.period = 1.0 / rate_hz
+        self.engine = Engine(self.backend, self.supervisor, self.clock, rate_hz, on_tick=self._on_tick)
+        self.engine.start()
+
+    def _stop_engine(self) -> None:
+        if self.engine is not None:
+            self.engine.stop()
+
+    def _shutdown(self) -> None:
+        self._watch_stop.set()
+        self._stop_engine()
+        if self.backend is not None:
+            self.backend.deactivate()
+        self.engine = None
+        self.backend = None
+        self._job = None
+        self._proc = None
+
+    def _watcher(self) -> None:
+        """Finishes work that ended by itself (off the engine thread)."""
+        while not self._watch_stop.wait(0.05):
+            with self._lock:
+                if self.state == State.FAULT:
+                    if self._job is not None:
+                        self._finish_run("fault")
+                    continue
+                if self._job is not None and self._job.done:
+                    self._finish_run("complete")
+                elif self._proc is not None and self._proc.finished:
+                    self._finish_procedure()
+
+    def _finish_run(self, status: str) -> None:
+        job, log = self._job, self._log
+        assert job is not None and self.supervisor is not None
+        self.supervisor.job = None
+        if self.engine is not None:
+            self.engine.recorder = None
+        set_dist = getattr(self.backend, "set_disturbance", None)
+        if set_dist is not None:
+            set_dist(0.0, 0.0)
+        set_program = getattr(self.backend, "set_program", None)
+        if set_program is not None:
+            from app.engine.human import HumanProgram
+
+            set_program(HumanProgram.rest())
+        metrics: dict[str, Any] | None = None
+        result: dict[str, Any] = {"window_s": None}
+        if len(job.rows) > 10:
+            a = np.asarray(job.rows)
+            # an overrun followed by a catch-up tick can sample the plant twice at
+            # one rig time; the metrics need strictly increasing times
+            a = a[np.r_[True, np.diff(a[:, 0]) > 0]]
+            try:
+                m, window, t_on = score_case(job.spec.case, a[:, 0], a[:, 1], a[:, 2], job.t_end, job.t_d,
+                                             ScenarioSettings(pw_bar=job.spec.pw_bar))
+                metrics = m
+                result = {"window_s": list(window), "t_engage_s": t_on if math.isfinite(t_on) else None}
+            except ValueError as exc:  # too short a window (stopped early)
+                result = {"window_s": None, "note": str(exc)}
+        if log is not None:
+            log.close(status, metrics=metrics)
+        if self.sink is not None and self._run_id is not None:
+            self.sink.run_finished(self._run_id, status, metrics, result)
+        self.last_run = {"run_id": self._run_id, "status": status, "metrics": metrics}
+        self._job, self._log = None, None
+        if self._state != State.FAULT:
+            self._state = State.IDLE
+
+    def _finish_procedure(self) -> None:
+        proc = self._proc
+        status = proc.progress.state
+        result: dict[str, Any] | None = None
+        try:
+            result = self._proc_fit(proc)
+        except Exception as exc:  # too little data to fit (cancelled early): keep the status
+            result = {"error": f"{type(exc).__name__}: {exc}"}
+        result = {"progress": proc.progress.as_dict(), **(result or {})}
+        if self.sink is not None and self._run_id is not None:
+            self.sink.run_finished(self._run_id, status, None, result)
+        self.last_run = {"run_id": self._run_id, "status": status, "result": result}
+        assert self.supervisor is not None
+        self.supervisor.job = None
+        self._proc = None
+        self._stop_engine()
+        self._start_engine(self.rate_hz)
+        self._state = State.IDLE
+
+
+def _sim_backend(clock: WallClock, period: float) -> HardwareInterface:
+    from app.engine.hardware.sim import SimulatedRig
+    from app.engine.human import HumanProgram
+
+    rig = SimulatedRig(clock, PlantParams(), period=period)
+    rig.set_program(HumanProgram.rest())
+    return rig
