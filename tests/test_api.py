@@ -167,3 +167,30 @@ def test_store_marks_runs_cut_short_by_a_crash_as_interrupted(tmp_path: Path) ->
     assert s2.run(rid)["status"] == "interrupted"  # type: ignore[index]
     with pytest.raises(ValueError, match="not supported"):
         Store("postgresql://lab/cwrr")
+
+
+def test_an_engine_error_latches_a_fault_until_cleared(tmp_path: Path) -> None:
+    from app.engine.hardware.sim import SimulatedRig
+    from app.engine.station import Station, TransitionError
+
+    class Flaky(SimulatedRig):
+        name = "flaky"
+        reads = 0
+
+        def read(self):  # type: ignore[no-untyped-def]
+            Flaky.reads += 1
+            if Flaky.reads > 50:
+                raise OSError("encoder cable unplugged")
+            return super().read()
+
+    st = Station(lambda clock, period: Flaky(clock, period=period), data_dir=tmp_path)
+    st.connect()
+    deadline = time.monotonic() + 10.0
+    while st.state.value != "fault" and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert st.state.value == "fault" and "encoder cable unplugged" in st.fault_message
+    assert st.allowed() == ["clear"]
+    with pytest.raises(TransitionError, match="fault is latched"):
+        st.connect()
+    st.clear()
+    assert st.state.value == "disconnected" and st.fault_message == ""

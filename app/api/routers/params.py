@@ -18,16 +18,17 @@ router = APIRouter(prefix="/api", tags=["parameters"])
 def check_form(rig: Literal["rotary", "linear"], body: FormCheckIn) -> FormState:
     form = GuidedForm(rig)
     refused: str | None = None
+    message = form.message
     for name, value in body.values.items():
         res = form.enter(name, value)  # unknown field → ParameterError → 422
+        message = res.message
         if not res.ok:
             refused = name
             break
     editable = form.editable
     fields = [FieldState(name=r.name, label=r.label, valid=bool(form.valid.get(r.name)), editable=r.name == editable)
               for r in form.rules]
-    msg = form.message if refused is None else form.enter(refused, body.values[refused]).message
-    return FormState(fields=fields, message=msg, ready=form.phase == "ready", refused=refused)
+    return FormState(fields=fields, message=message, ready=form.phase == "ready", refused=refused)
 
 
 @router.post("/params", response_model=ParamSet, status_code=201, summary="Validate and store a parameter set")
