@@ -31,9 +31,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from app.engine.constants import BAR, P_ATM
 from app.engine.control.config import ControllerName
 from app.engine.control.interaction import InteractionController
-from app.engine.hardware.base import Command, HardwareInterface, Measurement
+from app.engine.hardware.base import SAFE_COMMAND, Command, HardwareInterface, Measurement
 from app.engine.loop import Controller, Engine, WallClock
 from app.engine.params import ParameterError, PlantParams
 from app.engine.runlog import RunLogWriter
@@ -225,11 +226,11 @@ class RunJob:
         if self.t0 is None:
             self.t0 = meas.t
         if self.done:
-            return Command(0.0, 0.0, 0.0, 10.0)
+            return SAFE_COMMAND
         if self.t_prog is None:
             if meas.t - self.t0 < PRESSURISE_S:
-                z = self.spec.pw_bar - 1.01325
-                return Command(z, z, 0.0, 10.0)
+                z = self.spec.pw_bar - P_ATM / BAR  # PRV static map P = z + P_atm (SPEC §3)
+                return Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
             self.t_prog = meas.t
             self.on_program_start(meas.t)
         tr = meas.t - self.t_prog
@@ -365,7 +366,7 @@ class Station:
 
             job = RunJob(spec, ctl, t_end, t_d, program_start, disturb)
             name = time.strftime("run-%Y%m%d-%H%M%S") + f"-{int(time.time() * 1e3) % 1000:03d}"
-            meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": 1.01325,
+            meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": P_ATM / BAR,
                     "working_pressure_bar": spec.pw_bar, "experiment": "workout", "human": True,
                     "backend": backend.name, **asdict(spec)}
             self._log = RunLogWriter(self.data_dir / "runs", name, meta)

@@ -30,11 +30,15 @@ def _get(store: StoreDep, run_id: int) -> dict[str, Any]:
     return r
 
 
-def _load(r: dict[str, Any]) -> tuple[list[str], np.ndarray]:
+def _log_path(r: dict[str, Any]) -> Path:
     path = Path(r["log_csv"]) if r["log_csv"] else None
     if path is None or not path.is_file():
         raise HTTPException(404, f"run {r['id']} has no time series")
-    with open(path, encoding="utf-8") as fh:
+    return path
+
+
+def _load(r: dict[str, Any]) -> tuple[list[str], np.ndarray]:
+    with open(_log_path(r), encoding="utf-8") as fh:
         cols = fh.readline().strip().split(",")
         # a run still being written may end in a partial line; keep the complete ones
         lines = [ln for ln in fh.read().splitlines() if ln.count(",") == len(cols) - 1]
@@ -69,8 +73,7 @@ FILES: dict[int | str, dict[str, Any]] = {
 def export(run_id: int, store: StoreDep, fmt: Literal["csv", "mat"] = "csv") -> Response:
     r = _get(store, run_id)
     if fmt == "csv":
-        cols, _ = _load(r)  # 404 when missing
-        return FileResponse(r["log_csv"], media_type="text/csv", filename=f"run-{run_id}.csv")
+        return FileResponse(_log_path(r), media_type="text/csv", filename=f"run-{run_id}.csv")
     from scipy.io import savemat
 
     cols, data = _load(r)
