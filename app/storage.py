@@ -1,13 +1,15 @@
-"""The embedded run store (SQLite, standard library).
+"""The run store: SQLite by default (standard library), PostgreSQL by URL.
 
 Holds runs (workouts and identifications: spec, status, metrics, identified
 parameters, the path of the run's time-series log), parameter sets and
-sessions. The time series themselves live in each run's fsynced CSV log
-(:class:`~app.engine.runlog.RunLogWriter`), appended while the run goes;
-the store points at it. SQLite runs in WAL mode so the API reads while the
-station writes.
+therapy sessions. The time series themselves live in each run's fsynced CSV
+log (:class:`~app.engine.runlog.RunLogWriter`), appended while the run goes;
+the store points at it. Every write is one auto-committed statement, so a
+crash leaves either the whole row or none of it.
 
-Only ``sqlite:///PATH`` URLs are implemented; see README for PostgreSQL.
+URLs: ``sqlite:///PATH`` (WAL mode, so the API reads while the station writes)
+or ``postgresql://user:pass@host:port/db`` (needs ``psycopg``, installed with
+the project). The two dialects differ only in placeholders and column types.
 """
 
 from __future__ import annotations
@@ -19,34 +21,38 @@ import time
 from pathlib import Path
 from typing import Any
 
-SCHEMA = """
+_TABLES = """
 CREATE TABLE IF NOT EXISTS runs (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    id {pk},
     kind TEXT NOT NULL,
     status TEXT NOT NULL,
-    started REAL NOT NULL,
-    ended REAL,
+    started {real} NOT NULL,
+    ended {real},
     spec TEXT NOT NULL,
     metrics TEXT,
     result TEXT,
     log_csv TEXT NOT NULL,
     person TEXT NOT NULL DEFAULT '',
-    notes TEXT NOT NULL DEFAULT ''
+    notes TEXT NOT NULL DEFAULT '',
+    session_id {int}
 );
 CREATE TABLE IF NOT EXISTS param_sets (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    id {pk},
     kind TEXT NOT NULL,
     name TEXT NOT NULL,
     payload TEXT NOT NULL,
-    created REAL NOT NULL
+    created {real} NOT NULL
 );
 CREATE TABLE IF NOT EXISTS sessions (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    id {pk},
     person TEXT NOT NULL,
     notes TEXT NOT NULL DEFAULT '',
-    created REAL NOT NULL
+    created {real} NOT NULL
 );
 """
+# PostgreSQL's REAL is 4 bytes: Unix times would lose whole seconds
+_SQLITE = {"pk": "INTEGER PRIMARY KEY AUTOINCREMENT", "real": "REAL", "int": "INTEGER"}
+_POSTGRES = {"pk": "BIGSERIAL PRIMARY KEY", "real": "DOUBLE PRECISION", "int": "BIGINT"}
 
 
 def sqlite_path(url: str) -> Path:
@@ -58,70 +64,116 @@ def sqlite_path(url: str) -> Path:
     prefix = "sqlite:///"
     if not url.startswith(prefix):
         scheme = url.split(":", 1)[0] if ":" in url else url
-        raise ValueError(f"database_url scheme {scheme!r} is not supported; use sqlite:///PATH")
+        raise ValueError(f"database_url scheme {scheme!r} is not supported; use sqlite:///PATH or postgresql://…")
     return Path(url[len(prefix):])
 
 
+def _redact(url: str) -> str:
+    """The URL without its password (for messages)."""
+    head, at, tail = url.rpartition("@")
+    if not at:
+        return url
+    scheme, _, cred = head.partition("://")
+    return f"{scheme}://{cred.split(':', 1)[0]}:***@{tail}"
+
+
 class Store:
-    """Runs, parameter sets and sessions in one SQLite file (thread-safe).
+    """Runs, parameter sets and sessions (thread-safe: one connection behind a lock).
 
     Args:
-        url: ``sqlite:///PATH`` (the folder is created).
+        url: ``sqlite:///PATH`` (the folder is created) or ``postgresql://…``.
     """
 
     def __init__(self, url: str) -> None:
-        path = sqlite_path(url)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self._db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None)
-        self._db.row_factory = sqlite3.Row
         self._lock = threading.Lock()
-        with self._lock:
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.executescript(SCHEMA)
-            # a run still "running" at start-up was cut short by a crash or kill;
-            # its log holds everything up to the last flush
-            self._db.execute("UPDATE runs SET status='interrupted' WHERE status='running'")
+        self.dialect = "postgresql" if url.startswith(("postgresql://", "postgres://")) else "sqlite"
+        if self.dialect == "postgresql":
+            try:
+                import psycopg
+            except ImportError as exc:  # pragma: no cover - psycopg is a project dependency
+                raise ValueError("database_url is PostgreSQL but psycopg is not installed") from exc
+            try:
+                self._db: Any = psycopg.connect(url, autocommit=True)
+            except psycopg.OperationalError as exc:
+                raise ValueError(f"cannot reach the database at {_redact(url)}: {str(exc).strip()}") from None
+            ddl = _TABLES.format(**_POSTGRES)
+            with self._lock:
+                for stmt in filter(str.strip, ddl.split(";")):
+                    self._db.execute(stmt)
+                self._db.execute("ALTER TABLE runs ADD COLUMN IF NOT EXISTS session_id BIGINT")
+        else:
+            path = sqlite_path(url)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None)
+            with self._lock:
+                self._db.execute("PRAGMA journal_mode=WAL")
+                self._db.executescript(_TABLES.format(**_SQLITE))
+                cols = {r[1] for r in self._db.execute("PRAGMA table_info(runs)").fetchall()}
+                if "session_id" not in cols:  # a store made before sessions were linked to runs
+                    self._db.execute("ALTER TABLE runs ADD COLUMN session_id INTEGER")
+        # a run still "running" at start-up was cut short by a crash or kill;
+        # its log holds everything up to the last flush
+        self._exec("UPDATE runs SET status='interrupted' WHERE status='running'")
 
     def close(self) -> None:
         """Close the connection."""
         with self._lock:
             self._db.close()
 
+    def _exec(self, sql: str, args: tuple[Any, ...] = ()) -> list[dict[str, Any]]:
+        """Run one statement; rows as dicts (``?`` placeholders in both dialects)."""
+        if self.dialect == "postgresql":
+            sql = sql.replace("?", "%s")
+        with self._lock:
+            cur = self._db.execute(sql, args)
+            if cur.description is None:
+                return []
+            names = [d[0] for d in cur.description]
+            return [dict(zip(names, row, strict=True)) for row in cur.fetchall()]
+
+    def _insert(self, sql: str, args: tuple[Any, ...]) -> int:
+        return int(self._exec(sql + " RETURNING id", args)[0]["id"])
+
     # ------------------------------------------------------------------ runs
 
     def run_started(self, kind: str, spec: dict[str, Any], log_csv: str) -> int:
         """Record a new run; returns its id."""
-        with self._lock:
-            cur = self._db.execute(
-                "INSERT INTO runs(kind, status, started, spec, log_csv, person, notes) VALUES (?,?,?,?,?,?,?)",
-                (kind, "running", time.time(), json.dumps(spec), log_csv, str(spec.get("person", "")),
-                 str(spec.get("notes", ""))))
-            return int(cur.lastrowid or 0)
+        sid = spec.get("session_id")
+        return self._insert(
+            "INSERT INTO runs(kind, status, started, spec, log_csv, person, notes, session_id) "
+            "VALUES (?,?,?,?,?,?,?,?)",
+            (kind, "running", time.time(), json.dumps(spec), log_csv, str(spec.get("person", "")),
+             str(spec.get("notes", "")), int(sid) if sid is not None else None))
 
     def run_finished(self, run_id: int, status: str, metrics: dict[str, Any] | None,
                      result: dict[str, Any] | None) -> None:
         """Record how a run ended."""
-        with self._lock:
-            self._db.execute("UPDATE runs SET status=?, ended=?, metrics=?, result=? WHERE id=?",
-                             (status, time.time(), json.dumps(metrics) if metrics is not None else None,
-                              json.dumps(result, default=float) if result is not None else None, run_id))
+        self._exec("UPDATE runs SET status=?, ended=?, metrics=?, result=? WHERE id=?",
+                   (status, time.time(), json.dumps(metrics) if metrics is not None else None,
+                    json.dumps(result, default=float) if result is not None else None, run_id))
 
-    def runs(self, limit: int = 100, offset: int = 0, kind: str | None = None) -> list[dict[str, Any]]:
-        """Newest first."""
-        q = "SELECT * FROM runs" + (" WHERE kind=?" if kind else "") + " ORDER BY id DESC LIMIT ? OFFSET ?"
-        args: tuple[Any, ...] = ((kind,) if kind else ()) + (limit, offset)
-        with self._lock:
-            return [self._run(r) for r in self._db.execute(q, args).fetchall()]
+    def runs(self, limit: int = 100, offset: int = 0, kind: str | None = None,
+             session_id: int | None = None) -> list[dict[str, Any]]:
+        """Newest first, optionally of one kind or one session."""
+        where: list[str] = []
+        args: list[Any] = []
+        if kind:
+            where.append("kind=?")
+            args.append(kind)
+        if session_id is not None:
+            where.append("session_id=?")
+            args.append(session_id)
+        q = "SELECT * FROM runs" + (" WHERE " + " AND ".join(where) if where else "") + \
+            " ORDER BY id DESC LIMIT ? OFFSET ?"
+        return [self._run(r) for r in self._exec(q, (*args, limit, offset))]
 
     def run(self, run_id: int) -> dict[str, Any] | None:
         """One run, or None."""
-        with self._lock:
-            r = self._db.execute("SELECT * FROM runs WHERE id=?", (run_id,)).fetchone()
-        return self._run(r) if r is not None else None
+        rows = self._exec("SELECT * FROM runs WHERE id=?", (run_id,))
+        return self._run(rows[0]) if rows else None
 
     @staticmethod
-    def _run(r: sqlite3.Row) -> dict[str, Any]:
-        d = dict(r)
+    def _run(d: dict[str, Any]) -> dict[str, Any]:
         for k in ("spec", "metrics", "result"):
             d[k] = json.loads(d[k]) if d[k] else None
         return d
@@ -130,34 +182,32 @@ class Store:
 
     def save_params(self, kind: str, name: str, payload: dict[str, Any]) -> int:
         """Store a validated parameter set; returns its id."""
-        with self._lock:
-            cur = self._db.execute("INSERT INTO param_sets(kind, name, payload, created) VALUES (?,?,?,?)",
-                                   (kind, name, json.dumps(payload), time.time()))
-            return int(cur.lastrowid or 0)
+        return self._insert("INSERT INTO param_sets(kind, name, payload, created) VALUES (?,?,?,?)",
+                            (kind, name, json.dumps(payload), time.time()))
 
     def param_set(self, set_id: int) -> dict[str, Any] | None:
         """One stored parameter set, or None."""
-        with self._lock:
-            r = self._db.execute("SELECT * FROM param_sets WHERE id=?", (set_id,)).fetchone()
-        return dict(r, payload=json.loads(r["payload"])) if r is not None else None
+        rows = self._exec("SELECT * FROM param_sets WHERE id=?", (set_id,))
+        return dict(rows[0], payload=json.loads(rows[0]["payload"])) if rows else None
 
     def param_sets(self, kind: str | None = None) -> list[dict[str, Any]]:
         """Stored parameter sets, newest first."""
         q = "SELECT * FROM param_sets" + (" WHERE kind=?" if kind else "") + " ORDER BY id DESC"
-        with self._lock:
-            rows = self._db.execute(q, (kind,) if kind else ()).fetchall()
-        return [dict(r, payload=json.loads(r["payload"])) for r in rows]
+        return [dict(r, payload=json.loads(r["payload"])) for r in self._exec(q, (kind,) if kind else ())]
 
     # --------------------------------------------------------------- sessions
 
     def add_session(self, person: str, notes: str = "") -> int:
         """Open a session for a pseudonymous person id."""
-        with self._lock:
-            cur = self._db.execute("INSERT INTO sessions(person, notes, created) VALUES (?,?,?)",
-                                   (person, notes, time.time()))
-            return int(cur.lastrowid or 0)
+        return self._insert("INSERT INTO sessions(person, notes, created) VALUES (?,?,?)",
+                            (person, notes, time.time()))
 
-    def sessions(self) -> list[dict[str, Any]]:
-        """All sessions, newest first."""
-        with self._lock:
-            return [dict(r) for r in self._db.execute("SELECT * FROM sessions ORDER BY id DESC").fetchall()]
+    def session(self, session_id: int) -> dict[str, Any] | None:
+        """One session, or None."""
+        rows = self._exec("SELECT * FROM sessions WHERE id=?", (session_id,))
+        return rows[0] if rows else None
+
+    def sessions(self, person: str | None = None) -> list[dict[str, Any]]:
+        """Sessions, newest first (optionally one person's)."""
+        q = "SELECT * FROM sessions" + (" WHERE person=?" if person else "") + " ORDER BY id DESC"
+        return self._exec(q, (person,) if person else ())

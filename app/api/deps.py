@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import Depends, Request
+from fastapi import Depends, Path, Request
 
 from app.engine.station import Station
 from app.storage import Store
@@ -24,3 +24,5 @@ def get_store(request: Request) -> Store:
 
 StationDep = Annotated[Station, Depends(get_station)]
 StoreDep = Annotated[Store, Depends(get_store)]
+IdPath = Annotated[int, Path(ge=1, le=2**62, description="stored id")]
+"""A stored row's id (bounded so no database sees an integer it cannot hold)."""

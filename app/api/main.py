@@ -11,7 +11,7 @@ from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from app.api.models import ViserInfo
-from app.api.routers import engine, params, runs
+from app.api.routers import engine, params, runs, sessions
 from app.api.settings import Settings
 from app.engine.params import ParameterError
 from app.engine.station import Station, TransitionError
@@ -65,6 +65,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(engine.router)
     app.include_router(runs.router)
     app.include_router(params.router)
+    app.include_router(sessions.router)
 
     @app.get("/api/viser", tags=["engine"], response_model=ViserInfo, summary="Where the live plots are served")
     def viser_url(request: Request) -> ViserInfo:

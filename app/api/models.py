@@ -41,6 +41,7 @@ class EngineStatus(BaseModel):
         allowed: Actions legal now (the dashboard enables exactly these buttons).
         run_id: Stored id of the current or last started run.
         backend: Backend name when connected.
+        rig: The connected rig (kind, cylinder).
         fault: The latched fault's message.
         progress: Progress of the current work.
         last_run: How the last run ended (id, status, metrics or result).
@@ -50,6 +51,7 @@ class EngineStatus(BaseModel):
     allowed: list[str]
     run_id: int | None = None
     backend: str | None = None
+    rig: dict[str, str] | None = None
     fault: str = ""
     progress: dict[str, Any] | None = None
     last_run: dict[str, Any] | None = None
@@ -75,6 +77,78 @@ class RunRequest(BaseModel):
     pw_bar: float = Field(3.0, ge=1.5, le=6.0, description="bar abs")
     person: str = Field("", max_length=64, pattern=r"^[A-Za-z0-9_.-]*$")
     notes: str = Field("", max_length=2000)
+    session_id: int | None = Field(None, ge=1, le=2**62, description="therapy session (person taken from it)")
+    workout_id: int | None = Field(None, ge=1, le=2**62, description="stored workout parameter set")
+    gains_id: int | None = Field(None, ge=1, le=2**62, description="stored Cascade PID gain set")
+    fuzzy_id: int | None = Field(None, ge=1, le=2**62, description="stored fuzzy MF set")
+
+
+class ConnectRequest(BaseModel):
+    """Which rig to connect.
+
+    Attributes:
+        rig: ``rotary`` (the CWRR forearm axis) or ``linear`` (the linear test cylinder of thesis 3.2.4).
+        cylinder: Cylinder on the simulated linear rig (thesis Table 3.3).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    rig: Literal["rotary", "linear"] = "rotary"
+    cylinder: Literal["C1", "C2", "C3"] = "C3"
+
+
+class LinearIdentRequest(BaseModel):
+    """Linear friction identification inputs (thesis Figure 3.27, Appendix 2 rules).
+
+    Attributes:
+        stroke_mm: Stroke [mm].
+        piston_diameter_mm: Piston diameter [mm].
+        rod_diameter_mm: Rod diameter [mm].
+        ns: Static experiments per direction (≥ 30).
+        nd: Dynamic experiments per direction (≥ 30).
+        seed: Seed of the random test positions and levels.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    stroke_mm: float = 300.0
+    piston_diameter_mm: float = 32.0
+    rod_diameter_mm: float = 12.0
+    ns: int = 30
+    nd: int = 30
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+
+
+class SessionIn(BaseModel):
+    """Open a therapy session.
+
+    Attributes:
+        person: Pseudonymous id of the person (letters, digits, ``_.-``; no names).
+        notes: Therapist's notes.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    person: str = Field(..., min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
+    notes: str = Field("", max_length=2000)
+
+
+class Session(BaseModel):
+    """A therapy session.
+
+    Attributes:
+        id: Id.
+        person: Pseudonymous person id.
+        notes: Notes.
+        created: When [Unix s].
+        runs: Ids of the runs recorded in it, newest first.
+    """
+
+    id: int
+    person: str
+    notes: str
+    created: float
+    runs: list[int] = []
 
 
 class RotaryIdentRequest(BaseModel):
@@ -141,6 +215,7 @@ class RunInfo(BaseModel):
         result: Evaluation window or identified parameters.
         person: Pseudonymous person id.
         notes: Notes.
+        session_id: The therapy session it belongs to.
         has_series: Whether a time-series log exists.
     """
 
@@ -154,6 +229,7 @@ class RunInfo(BaseModel):
     result: dict[str, Any] | None
     person: str
     notes: str
+    session_id: int | None = None
     has_series: bool
 
 
@@ -175,16 +251,17 @@ class ParamSetIn(BaseModel):
     """A parameter set to validate and store.
 
     Attributes:
-        kind: ``rotary`` or ``linear`` identification inputs.
+        kind: ``rotary`` / ``linear`` identification inputs (every field), ``workout`` shape,
+            Cascade PID ``gains`` (all six) or ``fuzzy`` scheduler (any of its fields).
         name: Label.
-        values: Field values in the GUI's units.
+        values: Field values in the GUI's units (``GET /api/params/fields`` lists them).
     """
 
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["rotary", "linear"]
+    kind: Literal["rotary", "linear", "workout", "gains", "fuzzy"]
     name: str = Field(..., min_length=1, max_length=80)
-    values: dict[str, float]
+    values: dict[str, float | str]
 
 
 class ParamSet(BaseModel):

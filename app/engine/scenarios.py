@@ -31,6 +31,7 @@ from typing import Any, Literal
 import numpy as np
 
 from app.engine.control.config import ControllerConfig, ControllerName
+from app.engine.control.fuzzy import FuzzyConfig
 from app.engine.human import HumanProgram, isotonic
 from app.engine.metrics import all_metrics
 from app.engine.params import ParameterError, PlantParams, check_range
@@ -186,12 +187,22 @@ def case_program(case: Case, settings: ScenarioSettings | None = None) -> tuple[
     return prog, float(prog.t[-4]), t_d  # t[-4]: the far end of the rotation is reached
 
 
-def case_controller(case: Case, controller: ControllerName, settings: ScenarioSettings | None = None
-                    ) -> ControllerConfig:
-    """The controller configuration a case runs with."""
+def case_controller(case: Case, controller: ControllerName, settings: ScenarioSettings | None = None,
+                    pid_gains: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None,
+                    fuzzy: FuzzyConfig | None = None) -> ControllerConfig:
+    """The controller configuration a case runs with.
+
+    Args:
+        case: The case.
+        controller: PRV controller.
+        settings: Workout shape (P_w).
+        pid_gains: Cascade PID gains ((K_p, K_i, K_d) of PRV-a, of PRV-b); None keeps Eq 3.26's.
+        fuzzy: Fuzzy scheduler; None keeps the thesis's.
+    """
     s = settings or ScenarioSettings()
     return ControllerConfig(controller=controller, target_nm=abs(case.target), pw_bar=s.pw_bar,
-                            pdra=case.pdra, tdra=case.tdra)
+                            pdra=case.pdra, tdra=case.tdra, pid_gains=pid_gains,
+                            fuzzy=fuzzy if fuzzy is not None else FuzzyConfig())
 
 
 def score_case(case: Case, t: np.ndarray, torque: np.ndarray, mode: np.ndarray, t_end: float,

@@ -31,8 +31,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from app.engine import paramsets
 from app.engine.constants import BAR, P_ATM
-from app.engine.control.config import ControllerName
+from app.engine.control.config import ControllerConfig, ControllerName
 from app.engine.control.interaction import InteractionController
 from app.engine.hardware.base import SAFE_COMMAND, Command, HardwareInterface, Measurement
 from app.engine.loop import Controller, Engine, WallClock
@@ -84,10 +85,36 @@ class TransitionError(RuntimeError):
         state: The state it was refused in.
     """
 
-    def __init__(self, action: str, state: State) -> None:
+    def __init__(self, action: str, state: State, why: str | None = None) -> None:
         self.action = action
         self.state = state
-        super().__init__(f"cannot {action} while {state.value}: {_WHY[state]}")
+        super().__init__(f"cannot {action} while {state.value}: {why or _WHY[state]}")
+
+
+LINEAR_IDENT_RATE_HZ = 200.0
+"""Linear friction identification rate [Hz] (thesis 4.2.2)."""
+
+
+@dataclass(frozen=True)
+class Rig:
+    """Which rig the station drives.
+
+    Attributes:
+        kind: ``"rotary"`` (the CWRR forearm axis: workouts and rotary
+            identification) or ``"linear"`` (the linear test cylinder of
+            thesis 3.2.4: linear friction identification).
+        cylinder: The thesis's cylinder on the linear rig (``"C1"``, ``"C2"``, ``"C3"``;
+            the simulator's catalogue — a real rig ignores it).
+    """
+
+    kind: str = "rotary"
+    cylinder: str = "C3"
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("rotary", "linear"):
+            raise ParameterError(f"rig: {self.kind!r} must be 'rotary' or 'linear'")
+        if self.cylinder not in ("C1", "C2", "C3"):
+            raise ParameterError(f"cylinder: {self.cylinder!r} must be C1, C2 or C3 (thesis Table 3.3)")
 
 
 class RunSink(Protocol):
@@ -114,6 +141,10 @@ class RunSpec:
         pw_bar: Working pressure [bar abs].
         person: Pseudonymous id of the person exercising.
         notes: Free text.
+        workout: Workout shape overrides (:data:`~app.engine.paramsets.WORKOUT_FIELDS`).
+        gains: Cascade PID gains (:data:`~app.engine.paramsets.GAIN_FIELDS`); None keeps Eq 3.26's.
+        fuzzy: Fuzzy scheduler overrides (``e_range`` [bar], ``de_range`` [bar/s], ``defuzz``).
+        session_id: The therapy session the run belongs to.
     """
 
     scenario: str = "SC-1"
@@ -122,6 +153,10 @@ class RunSpec:
     pw_bar: float = 3.0
     person: str = ""
     notes: str = ""
+    workout: dict[str, float] | None = None
+    gains: dict[str, float] | None = None
+    fuzzy: dict[str, Any] | None = None
+    session_id: int | None = None
 
     def __post_init__(self) -> None:
         if self.scenario not in SCENARIOS:
@@ -133,6 +168,20 @@ class RunSpec:
                                  "so the target must be positive")
         if not (1.5 <= self.pw_bar <= 6.0):
             raise ParameterError(f"pw_bar: {self.pw_bar} bar must be within 1.5–6 bar abs")
+        for kind, values in (("workout", self.workout), ("gains", self.gains), ("fuzzy", self.fuzzy)):
+            if values is not None:
+                paramsets.validate(kind, values, partial=True)
+
+    @property
+    def settings(self) -> ScenarioSettings:
+        """The workout shape at this run's working pressure."""
+        return ScenarioSettings(pw_bar=self.pw_bar, **(self.workout or {}))
+
+    def controller_config(self) -> ControllerConfig:
+        """The controller this run uses."""
+        gains = paramsets.build("gains", self.gains) if self.gains is not None else None
+        fuzzy = paramsets.build("fuzzy", self.fuzzy) if self.fuzzy is not None else None
+        return case_controller(self.case, self.controller, self.settings, gains, fuzzy)
 
     @property
     def case(self) -> Case:
@@ -256,7 +305,7 @@ class Station:
 
     Args:
         backend_factory: Builds the backend for a connection, given the
-            engine's clock and period (simulator by default).
+            engine's clock, period [s] and :class:`Rig` (simulator by default).
         data_dir: Where run logs are written.
         sink: Optional run store.
         rate_hz: Control rate [Hz].
@@ -264,7 +313,7 @@ class Station:
 
     def __init__(
         self,
-        backend_factory: Callable[[WallClock, float], HardwareInterface] | None = None,
+        backend_factory: Callable[[WallClock, float, Rig], HardwareInterface] | None = None,
         data_dir: Path | str = "data",
         sink: RunSink | None = None,
         rate_hz: float = CONTROL_RATE_HZ,
@@ -276,6 +325,7 @@ class Station:
         self.live = LiveBuffer(rate_hz=ROTARY_IDENT_RATE_HZ)
         self.clock = WallClock()
         self.backend: HardwareInterface | None = None
+        self.rig = Rig()
         self.engine: Engine | None = None
         self.supervisor: Supervisor | None = None
         self._state = State.DISCONNECTED
@@ -314,12 +364,18 @@ class Station:
 
     # ---------------------------------------------------------------- actions
 
-    def connect(self) -> None:
-        """disconnected → idle: build and activate the backend, start the paced loop."""
+    def connect(self, rig: Rig | None = None) -> None:
+        """disconnected → idle: build and activate the backend, start the paced loop.
+
+        Args:
+            rig: Which rig (the rotary CWRR axis by default).
+        """
         with self._lock:
             self._require("connect")
+            rig = rig or Rig()
             self.clock = WallClock()
-            backend = self.backend_factory(self.clock, 1.0 / self.rate_hz)
+            backend = self.backend_factory(self.clock, 1.0 / self.rate_hz, rig)
+            self.rig = rig
             self.supervisor = Supervisor(backend.safe_command())
             # The first read/step compiles the numba kernels (seconds on a fresh
             # install); doing it here keeps that stall out of the loop's jitter.
@@ -345,11 +401,14 @@ class Station:
         """idle → running: a scenario run; returns the stored run id (None without a store)."""
         with self._lock:
             self._require("start")
+            if self.rig.kind != "rotary":
+                raise TransitionError("start", self.state, "workouts run on the rotary rig; "
+                                      "the linear test cylinder is connected (disconnect and connect rig=rotary)")
             assert self.backend is not None and self.supervisor is not None
-            settings = ScenarioSettings(pw_bar=spec.pw_bar)
+            settings = spec.settings
             case = spec.case
             prog, t_end, t_d = case_program(case, settings)
-            ctl = InteractionController(case_controller(case, spec.controller, settings))
+            ctl = InteractionController(spec.controller_config())
             backend = self.backend
             set_program = getattr(backend, "set_program", None)
             set_dist = getattr(backend, "set_disturbance", None)
@@ -379,16 +438,22 @@ class Station:
             self._state = State.RUNNING
             return self._run_id
 
-    def estimate(self, procedure: Any, kind: str, fit: Callable[[Any], dict[str, Any]]) -> int | None:
-        """idle → identifying: run an identification procedure at its rate (rotary: 500 Hz).
+    def estimate(self, procedure: Any, kind: str, fit: Callable[[Any], dict[str, Any]],
+                 rig: str = "rotary", spec: dict[str, Any] | None = None) -> int | None:
+        """idle → identifying: run an identification procedure at its rate (rotary 500 Hz, linear 200 Hz).
 
         Args:
             procedure: A :class:`~app.engine.ident.procedure.Procedure`.
             kind: Result kind (e.g. ``"rotary_friction"``).
             fit: Turns the finished procedure into a JSON-able result.
+            rig: The rig the procedure needs (``"rotary"`` or ``"linear"``).
+            spec: What was asked for (stored with the run).
         """
         with self._lock:
             self._require("estimate")
+            if self.rig.kind != rig:
+                raise TransitionError("estimate", self.state, f"this identification needs the {rig} rig; the "
+                                      f"{self.rig.kind} rig is connected (disconnect and connect rig={rig})")
             assert self.backend is not None and self.supervisor is not None
             set_program = getattr(self.backend, "set_program", None)
             if set_program is not None:
@@ -397,9 +462,10 @@ class Station:
                 set_program(HumanProgram.absent())  # nobody holds the handle during identification
             self._stop_engine()
             self._proc, self._proc_kind, self._proc_fit = procedure, kind, fit
-            self._run_id = self.sink.run_started(kind, {"procedure": procedure.name}, "") if self.sink else None
+            self._run_id = self.sink.run_started(kind, {"procedure": procedure.name, **(spec or {})}, "") \
+                if self.sink else None
             self.supervisor.job = procedure
-            self._start_engine(ROTARY_IDENT_RATE_HZ)
+            self._start_engine(ROTARY_IDENT_RATE_HZ if rig == "rotary" else LINEAR_IDENT_RATE_HZ)
             self._state = State.IDENTIFYING
             return self._run_id
 
@@ -438,6 +504,7 @@ class Station:
         st = self.state
         out: dict[str, Any] = {"state": st.value, "allowed": self.allowed(), "run_id": self._run_id,
                                "backend": self.backend.name if self.backend else None,
+                               "rig": asdict(self.rig) if self.backend else None,
                                "fault": self.fault_message, "progress": None, "last_run": self.last_run}
         if self._job is not None:
             out["progress"] = {"kind": "workout", "fraction": self._job.fraction,
@@ -523,7 +590,7 @@ class Station:
             a = a[np.r_[True, np.diff(a[:, 0]) > 0]]
             try:
                 m, window, t_on = score_case(job.spec.case, a[:, 0], a[:, 1], a[:, 2], job.t_end, job.t_d,
-                                             ScenarioSettings(pw_bar=job.spec.pw_bar))
+                                             job.spec.settings)
                 metrics = m
                 result = {"window_s": list(window), "t_engage_s": t_on if math.isfinite(t_on) else None}
             except ValueError as exc:  # too short a window (stopped early)
@@ -557,10 +624,11 @@ class Station:
         self._state = State.IDLE
 
 
-def _sim_backend(clock: WallClock, period: float) -> HardwareInterface:
+def _sim_backend(clock: WallClock, period: float, rig: Rig) -> HardwareInterface:
     from app.engine.hardware.sim import SimulatedRig
     from app.engine.human import HumanProgram
 
-    rig = SimulatedRig(clock, PlantParams(), period=period)
-    rig.set_program(HumanProgram.rest())
-    return rig
+    params = PlantParams() if rig.kind == "rotary" else PlantParams.linear_rig(rig.cylinder)  # type: ignore[arg-type]
+    sim = SimulatedRig(clock, params, period=period)
+    sim.set_program(HumanProgram.rest() if rig.kind == "rotary" else HumanProgram.absent())
+    return sim

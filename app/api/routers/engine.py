@@ -7,9 +7,19 @@ from typing import Any
 
 from fastapi import APIRouter, Query
 
-from app.api.deps import StationDep
-from app.api.models import EngineStatus, Health, LiveData, RotaryIdentRequest, RunRequest, Started
-from app.engine.station import LIVE_COLUMNS, RunSpec
+from app.api.deps import StationDep, StoreDep
+from app.api.models import (
+    ConnectRequest,
+    EngineStatus,
+    Health,
+    LinearIdentRequest,
+    LiveData,
+    RotaryIdentRequest,
+    RunRequest,
+    Started,
+)
+from app.engine.params import ParameterError
+from app.engine.station import LIVE_COLUMNS, Rig, RunSpec
 
 router = APIRouter(prefix="/api", tags=["engine"])
 CONFLICT: dict[int | str, dict[str, Any]] = {409: {"description": "Illegal in the current state (says why)"}}
@@ -26,8 +36,9 @@ def status(station: StationDep) -> EngineStatus:
 
 
 @router.post("/engine/connect", response_model=EngineStatus, responses=CONFLICT, summary="disconnected → idle")
-def connect(station: StationDep) -> EngineStatus:
-    station.connect()
+def connect(station: StationDep, body: ConnectRequest | None = None) -> EngineStatus:
+    body = body or ConnectRequest()
+    station.connect(Rig(body.rig, body.cylinder))
     return EngineStatus(**station.status())
 
 
@@ -38,12 +49,34 @@ def disconnect(station: StationDep) -> EngineStatus:
 
 
 @router.post("/engine/start", response_model=Started, responses=CONFLICT, summary="idle → running: a scenario run")
-def start(req: RunRequest, station: StationDep) -> Started:
-    spec = RunSpec(req.scenario, req.controller, req.target_nm, req.pw_bar, req.person, req.notes)
+def start(req: RunRequest, station: StationDep, store: StoreDep) -> Started:
+    person = req.person
+    if req.session_id is not None:
+        sess = store.session(req.session_id)
+        if sess is None:
+            raise ParameterError(f"session_id: session {req.session_id} does not exist")
+        if person and person != sess["person"]:
+            raise ParameterError(f"person: {person!r} differs from session {req.session_id}'s {sess['person']!r}")
+        person = sess["person"]
+
+    def stored(field: str, set_id: int | None, kind: str) -> dict[str, Any] | None:
+        if set_id is None:
+            return None
+        row = store.param_set(set_id)
+        if row is None or row["kind"] != kind:
+            raise ParameterError(f"{field}: no stored {kind} parameter set has id {set_id}")
+        return dict(row["payload"])
+
+    spec = RunSpec(req.scenario, req.controller, req.target_nm, req.pw_bar, person, req.notes,
+                   workout=stored("workout_id", req.workout_id, "workout"),
+                   gains=stored("gains_id", req.gains_id, "gains"),
+                   fuzzy=stored("fuzzy_id", req.fuzzy_id, "fuzzy"), session_id=req.session_id)
     run_id = station.start(spec)
     return Started(run_id=run_id, status=EngineStatus(**station.status()))
 
 
+@router.post("/engine/estimate/rotary", response_model=Started, responses=CONFLICT,
+             summary="idle → identifying: rotary friction identification (thesis 3.2.4, 500 Hz)")
 @router.post("/engine/estimate", response_model=Started, responses=CONFLICT,
              summary="idle → identifying: rotary friction identification (thesis 3.2.4, 500 Hz)")
 def estimate(req: RotaryIdentRequest, station: StationDep) -> Started:
@@ -58,7 +91,25 @@ def estimate(req: RotaryIdentRequest, station: StationDep) -> Started:
         assert res is not None
         return {"parameters": res.contract(), "tests": {"static": len(p.data.static), "dynamic": len(p.data.dynamic)}}
 
-    run_id = station.estimate(proc, "rotary_friction", fit)
+    run_id = station.estimate(proc, "rotary_friction", fit, "rotary", req.model_dump())
+    return Started(run_id=run_id, status=EngineStatus(**station.status()))
+
+
+@router.post("/engine/estimate/linear", response_model=Started, responses=CONFLICT,
+             summary="idle → identifying: linear friction identification (thesis 3.2.4, 200 Hz, linear rig)")
+def estimate_linear(req: LinearIdentRequest, station: StationDep) -> Started:
+    from app.engine.ident.gui_rules import LinearInputs
+    from app.engine.ident.linear import LinearFrictionEstimator, LinearFrictionProcedure
+
+    inputs = LinearInputs(req.stroke_mm, req.piston_diameter_mm, req.rod_diameter_mm, req.ns, req.nd)
+    proc = LinearFrictionProcedure(inputs, seed=req.seed)
+
+    def fit(p: Any) -> dict[str, Any]:
+        res = LinearFrictionEstimator(with_ci=False).fit(p.data).params_
+        assert res is not None
+        return {"parameters": res.contract(), "tests": {"static": len(p.data.static), "dynamic": len(p.data.dynamic)}}
+
+    run_id = station.estimate(proc, "linear_friction", fit, "linear", req.model_dump())
     return Started(run_id=run_id, status=EngineStatus(**station.status()))
 
 

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
-from fastapi import APIRouter
+from fastapi import APIRouter, HTTPException
 
-from app.api.deps import StoreDep
+from app.api.deps import IdPath, StoreDep
 from app.api.models import FieldState, FormCheckIn, FormState, ParamSet, ParamSetIn
-from app.engine.ident.gui_rules import GuidedForm, LinearInputs, RotaryInputs
-from app.engine.params import ParameterError
+from app.engine import paramsets
+from app.engine.ident.gui_rules import GuidedForm
 
 router = APIRouter(prefix="/api", tags=["parameters"])
 
@@ -33,23 +33,27 @@ def check_form(rig: Literal["rotary", "linear"], body: FormCheckIn) -> FormState
 
 @router.post("/params", response_model=ParamSet, status_code=201, summary="Validate and store a parameter set")
 def save_params(body: ParamSetIn, store: StoreDep) -> ParamSet:
-    v = body.values
-    cls = RotaryInputs if body.kind == "rotary" else LinearInputs
-    fields = [f for f in cls.__dataclass_fields__]
-    unknown = sorted(set(v) - set(fields))
-    if unknown:
-        raise ParameterError(f"{unknown[0]}: unknown field; fields: {', '.join(fields)}")
-    missing = [f for f in fields if f not in v]
-    if missing:
-        raise ParameterError(f"{missing[0]}: missing value")
-    kwargs: dict[str, Any] = {f: (int(v[f]) if f in ("ns", "nd") and float(v[f]).is_integer() else v[f])
-                              for f in fields}
-    cls(**kwargs)
-    row = store.param_set(store.save_params(body.kind, body.name, dict(v)))
+    values = paramsets.validate(body.kind, dict(body.values), partial=True)  # ParameterError → 422
+    row = store.param_set(store.save_params(body.kind, body.name, values))
     assert row is not None
     return ParamSet(**row)
 
 
+@router.get("/params/fields", response_model=dict[str, list[str]], summary="The fields of each parameter-set kind")
+def param_fields() -> dict[str, list[str]]:
+    return {k: list(paramsets.fields_of(k)) for k in paramsets.KINDS}
+
+
 @router.get("/params", response_model=list[ParamSet], summary="Stored parameter sets, newest first")
-def list_params(store: StoreDep, kind: Literal["rotary", "linear"] | None = None) -> list[ParamSet]:
+def list_params(store: StoreDep, kind: Literal["rotary", "linear", "workout", "gains", "fuzzy"] | None = None
+                ) -> list[ParamSet]:
     return [ParamSet(**p) for p in store.param_sets(kind)]
+
+
+@router.get("/params/{set_id}", response_model=ParamSet, responses={404: {"description": "No such set"}},
+            summary="One stored parameter set")
+def get_params(set_id: IdPath, store: StoreDep) -> ParamSet:
+    row = store.param_set(set_id)
+    if row is None:
+        raise HTTPException(404, f"parameter set {set_id} does not exist")
+    return ParamSet(**row)

@@ -1,0 +1,37 @@
+"""Therapy sessions: a pseudonymous person id, notes, and the runs recorded in them."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, HTTPException, Query
+
+from app.api.deps import IdPath, StoreDep
+from app.api.models import Session, SessionIn
+
+router = APIRouter(prefix="/api/sessions", tags=["sessions"])
+
+
+def _session(store: StoreDep, row: dict[str, Any]) -> Session:
+    return Session(**row, runs=[r["id"] for r in store.runs(1000, 0, session_id=row["id"])])
+
+
+@router.post("", response_model=Session, status_code=201, summary="Open a session")
+def open_session(body: SessionIn, store: StoreDep) -> Session:
+    row = store.session(store.add_session(body.person, body.notes))
+    assert row is not None
+    return _session(store, row)
+
+
+@router.get("", response_model=list[Session], summary="Sessions, newest first")
+def list_sessions(store: StoreDep, person: str | None = Query(None, max_length=64)) -> list[Session]:
+    return [_session(store, r) for r in store.sessions(person)]
+
+
+@router.get("/{session_id}", response_model=Session, responses={404: {"description": "No such session"}},
+            summary="One session with its runs")
+def get_session(session_id: IdPath, store: StoreDep) -> Session:
+    row = store.session(session_id)
+    if row is None:
+        raise HTTPException(404, f"session {session_id} does not exist")
+    return _session(store, row)

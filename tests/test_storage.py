@@ -1,0 +1,83 @@
+"""The run store on both dialects: SQLite always, PostgreSQL where a server is available.
+
+``./dev test`` (and CI) starts a local PostgreSQL and sets ``CWRR_TEST_DATABASE_URL``;
+elsewhere the PostgreSQL case is skipped with the reason.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from app.storage import Store
+
+PG_URL = os.environ.get("CWRR_TEST_DATABASE_URL", "")
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path}/store.sqlite3"
+        return
+    if not PG_URL:
+        pytest.skip("no PostgreSQL server (CWRR_TEST_DATABASE_URL unset; ./dev test starts one where it can)")
+    import psycopg
+
+    with psycopg.connect(PG_URL, autocommit=True) as db:  # a clean database for each test
+        for table in ("runs", "param_sets", "sessions"):
+            db.execute(f"DROP TABLE IF EXISTS {table}")
+    yield PG_URL
+
+
+def test_runs_sessions_and_parameter_sets_round_trip(url: str) -> None:
+    s = Store(url)
+    sid = s.add_session("P-007", "left arm")
+    rid = s.run_started("workout", {"scenario": "SC-2", "person": "P-007", "session_id": sid}, "/x.csv")
+    other = s.run_started("rotary_friction", {"procedure": "rotary"}, "")
+    s.run_finished(rid, "complete", {"mae": 0.13, "rmse": 0.2}, {"window_s": [1.5, 7.0]})
+    got = s.run(rid)
+    assert got is not None
+    assert got["status"] == "complete" and got["metrics"] == {"mae": 0.13, "rmse": 0.2}
+    assert got["result"] == {"window_s": [1.5, 7.0]} and got["session_id"] == sid and got["person"] == "P-007"
+    # Unix times keep sub-second precision (PostgreSQL's REAL would round them to minutes)
+    assert abs(got["ended"] - got["started"]) < 5.0 and got["ended"] != round(got["ended"], -2)
+    assert [r["id"] for r in s.runs()] == [other, rid]
+    assert [r["id"] for r in s.runs(kind="workout")] == [rid]
+    assert [r["id"] for r in s.runs(session_id=sid)] == [rid]
+    assert s.run(10**9) is None
+    ps = s.save_params("gains", "trial", {"kp_a": 0.7})
+    assert s.param_set(ps) is not None and s.param_set(ps)["payload"] == {"kp_a": 0.7}  # type: ignore[index]
+    assert [p["id"] for p in s.param_sets("gains")] == [ps] and s.param_sets("rotary") == []
+    assert s.session(sid)["person"] == "P-007" and [x["id"] for x in s.sessions("P-007")] == [sid]  # type: ignore[index]
+    s.close()
+
+
+def test_a_run_left_running_by_a_crash_is_interrupted_on_reopen(url: str) -> None:
+    s = Store(url)
+    rid = s.run_started("workout", {"scenario": "SC-1"}, "")
+    s.close()  # no run_finished: the process died
+    assert Store(url).run(rid)["status"] == "interrupted"  # type: ignore[index]
+
+
+def test_an_unreachable_postgresql_is_refused_without_leaking_the_password() -> None:
+    with pytest.raises(ValueError, match="cannot reach the database") as err:
+        Store("postgresql://lab:s3cret@127.0.0.1:1/cwrr")
+    assert "s3cret" not in str(err.value) and "lab:***@127.0.0.1:1" in str(err.value)
+
+
+def test_a_store_made_before_sessions_gains_the_column(tmp_path: Path) -> None:
+    import sqlite3
+
+    path = tmp_path / "old.sqlite3"
+    db = sqlite3.connect(path)
+    db.execute("CREATE TABLE runs (id INTEGER PRIMARY KEY AUTOINCREMENT, kind TEXT NOT NULL, status TEXT NOT NULL, "
+               "started REAL NOT NULL, ended REAL, spec TEXT NOT NULL, metrics TEXT, result TEXT, "
+               "log_csv TEXT NOT NULL, person TEXT NOT NULL DEFAULT '', notes TEXT NOT NULL DEFAULT '')")
+    db.execute("INSERT INTO runs(kind,status,started,spec,log_csv) VALUES ('workout','complete',1.0,'{}','')")
+    db.commit()
+    db.close()
+    s = Store(f"sqlite:///{path}")
+    assert s.run(1)["session_id"] is None  # type: ignore[index]
