@@ -7,8 +7,10 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI, Request
-from fastapi.responses import FileResponse, JSONResponse
+from fastapi.exception_handlers import http_exception_handler
+from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.api.models import ViserInfo
 from app.api.routers import engine, params, runs, sessions
@@ -48,7 +50,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             store.close()
 
     app = FastAPI(title="CWRR Lab Station", version="0.2.0", lifespan=lifespan,
-                  description="Control station of the pneumatic wrist/forearm rehabilitation robot (CWRR).")
+                  description="Control station of the pneumatic wrist/forearm rehabilitation robot (CWRR).",
+                  responses={400: {"description": "The body is not readable JSON"}})
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
+        headers = dict(exc.headers or {})
+        if exc.status_code == 405:
+            # Starlette names only the first matching route's methods; a path served by
+            # several routes (GET and POST /api/params) must list them all
+            path = request.url.path
+            methods = {m for r in request.app.router.routes
+                       if getattr(r, "methods", None) and r.path_regex.match(path)  # type: ignore[attr-defined]
+                       for m in r.methods}  # type: ignore[attr-defined]
+            headers["Allow"] = ", ".join(sorted(methods))
+        return await http_exception_handler(request, StarletteHTTPException(exc.status_code, exc.detail, headers))
 
     @app.exception_handler(TransitionError)
     async def conflict(request: Request, exc: TransitionError) -> JSONResponse:
