@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import math
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -284,3 +285,29 @@ def test_stored_gains_reach_the_controller() -> None:
     assert default[cpl.P_KP] != 0.5
     with pytest.raises(ParameterError, match=r"^amplitude_deg: "):
         RunSpec(workout={"amplitude_deg": 200})
+
+
+def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
+    # uPlot blanks a whole chart when a binary series holds NaN: before an exercise the buffer has
+    # no target or references, and those charts must still draw
+    import socket
+
+    from app.api.liveplots import LivePlots
+    from app.engine.station import Station
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    st = Station(data_dir=tmp_path)
+    plots = LivePlots(st, "127.0.0.1", port)
+    try:
+        for k in range(400):
+            tgt = math.nan if k < 200 else 1.2
+            ref = math.nan if k < 200 else 3.0
+            st.live.append((k * 0.005, 0.01 * k, tgt, 2.9, 3.1, ref, ref, 0.1, 0.2))
+        plots.publish()
+        for h in (plots.h_torque, plots.h_press, plots.h_speed, plots.h_err):
+            assert all(np.all(np.isfinite(np.asarray(a))) for a in h.data), h
+        assert np.asarray(plots.h_torque.data[2])[-1] == 1.2 and np.asarray(plots.h_press.data[2])[0] == 2.9
+    finally:
+        plots.stop()

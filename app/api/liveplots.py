@@ -22,6 +22,9 @@ MAX_POINTS = 1000  # per series and push; the 200/500 Hz buffer is decimated to 
 _COL = {c: i for i, c in enumerate(LIVE_COLUMNS)}
 
 
+XSCALE: dict[str, Any] = {"x": {"time": False}}  # seconds of rig time, not a calendar date
+
+
 def _series(label: str, color: str, dash: bool = False) -> Any:
     s: dict[str, Any] = {"label": label, "stroke": color, "width": 2}
     if dash:
@@ -53,23 +56,26 @@ class LivePlots:
         self.h_torque = gui.add_uplot(data=(np.zeros(2), np.zeros(2), np.zeros(2)),
                                       series=({"label": "t [s]"}, _series("T_i [N·m]", "#1f77b4"),
                                               _series("target [N·m]", "#d62728", dash=True)),
-                                      title="Interaction torque vs target", aspect=2.0)
+                                      title="Interaction torque vs target", aspect=2.0, scales=XSCALE)
         self.h_press = gui.add_uplot(data=(np.zeros(2),) * 5,
                                      series=({"label": "t [s]"}, _series("P_a [bar]", "#2ca02c"),
                                              _series("P_a ref [bar]", "#2ca02c", dash=True),
                                              _series("P_b [bar]", "#9467bd"),
                                              _series("P_b ref [bar]", "#9467bd", dash=True)),
-                                     title="Chamber pressures vs references", aspect=2.0)
+                                     title="Chamber pressures vs references", aspect=2.0, scales=XSCALE)
         self.h_speed = gui.add_uplot(data=z, series=({"label": "t [s]"}, _series("ω [rad/s]", "#ff7f0e")),
-                                     title="Speed", aspect=2.5)
+                                     title="Speed", aspect=2.5, scales=XSCALE)
         self.h_err = gui.add_uplot(data=z, series=({"label": "t [s]"}, _series("error [% of target]", "#8c564b")),
-                                   title="Tracking error", aspect=2.5)
+                                   title="Tracking error", aspect=2.5, scales=XSCALE)
         self.h_metrics = gui.add_markdown("No finished run yet.")
         self.h_radar: Any = None
         scene = self.server.scene
         scene.add_frame("/rig", show_axes=False)
         scene.add_box("/rig/base", color=(120, 120, 130), dimensions=(0.12, 0.12, 0.06), position=(0.0, 0.0, -0.05))
         self.h_handle = scene.add_box("/rig/handle", color=(30, 110, 200), dimensions=(0.03, 0.18, 0.03))
+        # the handle is 18 cm long: start the camera close enough to see it turn
+        self.server.initial_camera.position = (0.28, -0.32, 0.30)
+        self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
 
     def start(self) -> None:
         """Start publishing."""
@@ -99,12 +105,20 @@ class LivePlots:
             r = rows[::step]
             t = r[:, _COL["t"]]
             tq, tgt = r[:, _COL["torque"]], r[:, _COL["target"]]
+            # Outside an exercise there is no target and no reference (NaN in the buffer); uPlot
+            # blanks a whole chart on NaN in a binary series, so those samples show what holds
+            # then: no torque target, references equal to the measured pressures, no error.
+            idle = ~np.isfinite(tgt)
+            tgt = np.where(idle, 0.0, tgt)
+            p_a, p_b = r[:, _COL["p_a"]], r[:, _COL["p_b"]]
+            ref_a = np.where(idle, p_a, r[:, _COL["p_ref_a"]])
+            ref_b = np.where(idle, p_b, r[:, _COL["p_ref_b"]])
             self.h_torque.data = (t, tq, tgt)
-            self.h_press.data = (t, r[:, _COL["p_a"]], r[:, _COL["p_ref_a"]], r[:, _COL["p_b"]], r[:, _COL["p_ref_b"]])
+            self.h_press.data = (t, p_a, ref_a, p_b, ref_b)
             self.h_speed.data = (t, r[:, _COL["omega"]])
             with np.errstate(invalid="ignore", divide="ignore"):
-                err = np.where(np.abs(tgt) > 0, 100.0 * (tgt - tq) / np.abs(tgt), np.nan)
-            self.h_err.data = (t, err)
+                err = np.where(np.abs(tgt) > 0, 100.0 * (tgt - tq) / np.abs(tgt), 0.0)
+            self.h_err.data = (t, np.nan_to_num(err, nan=0.0, posinf=0.0, neginf=0.0))
             th = float(rows[-1, _COL["theta"]])
             self.h_handle.wxyz = (math.cos(th / 2.0), 0.0, 0.0, math.sin(th / 2.0))
         last = self.station.last_run

@@ -67,6 +67,16 @@ class HumanProgram:
         """The user holds the handle at neutral and does nothing."""
         return HumanProgram(np.array([0.0, duration]), np.array([0.0, 0.0]))
 
+    @staticmethod
+    def hold(theta: float, duration: float = 1.0) -> HumanProgram:
+        """The user stops where the handle is and holds it there.
+
+        Args:
+            theta: Angle to hold [rad].
+            duration: Program length [s] (the last position holds beyond it).
+        """
+        return HumanProgram(np.array([0.0, duration]), np.array([theta, theta]))
+
 
 def isotonic(
     direction: int,

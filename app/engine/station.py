@@ -43,6 +43,7 @@ from app.engine.scenarios import SCENARIOS, Case, ScenarioSettings, case_control
 
 CONTROL_RATE_HZ = 200.0  # thesis 3.3
 ROTARY_IDENT_RATE_HZ = 500.0  # thesis 4.2.1
+MIN_PARTIAL_WINDOW_S = 1.0  # a stopped run is scored only over at least this much of its window
 PRESSURISE_S = 1.5  # both chambers brought to P_w before the user engages (as run_workout starts)
 
 
@@ -219,11 +220,16 @@ class LiveBuffer:
     def since(self, t: float, max_rows: int = 2000) -> np.ndarray:
         """Rows newer than ``t`` [s], oldest first, at most ``max_rows`` (the newest)."""
         with self._lock:
-            k = min(self._i, self.n)
+            # copy only the newest max_rows: readers poll often, the ring holds 30 s
+            k = min(self._i, self.n, max(int(max_rows), 0))
             idx = (np.arange(self._i - k, self._i)) % self.n
-            rows = self._a[idx].copy()
-        rows = rows[rows[:, 0] > t]
-        return rows[-max_rows:]
+            rows = self._a[idx]  # fancy indexing copies
+        return rows[rows[:, 0] > t]
+
+    def latest(self) -> np.ndarray | None:
+        """The newest row, or None before the first."""
+        with self._lock:
+            return self._a[(self._i - 1) % self.n].copy() if self._i else None
 
     def clear(self) -> None:
         """Forget everything (a new connection starts a new time axis)."""
@@ -580,7 +586,11 @@ class Station:
         if set_program is not None:
             from app.engine.human import HumanProgram
 
-            set_program(HumanProgram.rest())
+            last = self.live.latest()
+            # the simulated user stops where the handle is; snapping back to neutral
+            # would yank the arm against still-pressurised chambers
+            set_program(HumanProgram.hold(float(last[LIVE_COLUMNS.index("theta")])) if last is not None
+                        else HumanProgram.rest())
         metrics: dict[str, Any] | None = None
         result: dict[str, Any] = {"window_s": None}
         if len(job.rows) > 10:
@@ -591,8 +601,14 @@ class Station:
             try:
                 m, window, t_on = score_case(job.spec.case, a[:, 0], a[:, 1], a[:, 2], job.t_end, job.t_d,
                                              job.spec.settings)
-                metrics = m
-                result = {"window_s": list(window), "t_engage_s": t_on if math.isfinite(t_on) else None}
+                w_end = min(window[1], float(a[-1, 0]))
+                result = {"window_s": [window[0], w_end], "t_engage_s": t_on if math.isfinite(t_on) else None,
+                          "partial": w_end < window[1]}
+                if w_end - window[0] >= MIN_PARTIAL_WINDOW_S:
+                    metrics = m  # a stopped run is scored over the part of the window it reached
+                else:
+                    result["note"] = (f"stopped {max(w_end - window[0], 0.0):.2f} s into the evaluation window; "
+                                      f"metrics need at least {MIN_PARTIAL_WINDOW_S:g} s")
             except ValueError as exc:  # too short a window (stopped early)
                 result = {"window_s": None, "note": str(exc)}
         if log is not None:

@@ -25,6 +25,20 @@ router = APIRouter(prefix="/api", tags=["engine"])
 CONFLICT: dict[int | str, dict[str, Any]] = {409: {"description": "Illegal in the current state (says why)"}}
 
 
+def _friction_result(data: Any, res: Any) -> dict[str, Any]:
+    """Identified parameters per direction plus the test points the dashboard plots (thesis Fig 4.12 style)."""
+    assert res is not None
+
+    def finite(*v: float) -> bool:
+        return all(math.isfinite(x) for x in v)
+
+    static = [[0.0, float(getattr(t, data.STATIC_FIELD))] for t in data.static if finite(getattr(t, data.STATIC_FIELD))]
+    dynamic = [[float(getattr(t, data.SPEED_FIELD)), float(getattr(t, data.FRICTION_FIELD))] for t in data.dynamic
+               if finite(getattr(t, data.SPEED_FIELD), getattr(t, data.FRICTION_FIELD))]
+    return {"parameters": res.contract(), "tests": {"static": len(data.static), "dynamic": len(data.dynamic)},
+            "points": {"static": static, "dynamic": dynamic}}
+
+
 @router.get("/health", response_model=Health, summary="Engine state, loop rate, jitter and overruns")
 def health(station: StationDep) -> Health:
     return Health(**station.health())
@@ -87,9 +101,7 @@ def estimate(req: RotaryIdentRequest, station: StationDep) -> Started:
     proc = RotaryFrictionProcedure(inputs, seed=req.seed)
 
     def fit(p: Any) -> dict[str, Any]:
-        res = RotaryFrictionEstimator(with_ci=False).fit(p.data).params_
-        assert res is not None
-        return {"parameters": res.contract(), "tests": {"static": len(p.data.static), "dynamic": len(p.data.dynamic)}}
+        return _friction_result(p.data, RotaryFrictionEstimator(with_ci=False).fit(p.data).params_)
 
     run_id = station.estimate(proc, "rotary_friction", fit, "rotary", req.model_dump())
     return Started(run_id=run_id, status=EngineStatus(**station.status()))
@@ -105,9 +117,7 @@ def estimate_linear(req: LinearIdentRequest, station: StationDep) -> Started:
     proc = LinearFrictionProcedure(inputs, seed=req.seed)
 
     def fit(p: Any) -> dict[str, Any]:
-        res = LinearFrictionEstimator(with_ci=False).fit(p.data).params_
-        assert res is not None
-        return {"parameters": res.contract(), "tests": {"static": len(p.data.static), "dynamic": len(p.data.dynamic)}}
+        return _friction_result(p.data, LinearFrictionEstimator(with_ci=False).fit(p.data).params_)
 
     run_id = station.estimate(proc, "linear_friction", fit, "linear", req.model_dump())
     return Started(run_id=run_id, status=EngineStatus(**station.status()))
