@@ -291,6 +291,13 @@ def _serve(args: argparse.Namespace) -> int:
     from app.api.settings import Settings
 
     settings = Settings(host=args.host, port=args.port, viser_port=args.viser_port)
+    if settings.realtime:
+        from app.engine.loop import make_server_realtime
+
+        # before uvicorn starts any thread, so they all inherit it (see make_server_realtime)
+        why = make_server_realtime()
+        if why:
+            print(f"cwrr serve: normal scheduling ({why}); /api/health reports the loop's jitter", file=sys.stderr)
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
     return 0
 

@@ -29,7 +29,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = Store(settings.db_url)
-        station = Station(data_dir=settings.data_dir, sink=store, rate_hz=settings.rate_hz)
+        station = Station(data_dir=settings.data_dir, sink=store, rate_hz=settings.rate_hz,
+                          realtime=settings.realtime)
         app.state.store, app.state.station = store, station
         plots = None
         if settings.start_engine:

@@ -20,6 +20,8 @@ class Health(BaseModel):
         jitter_p50_ms: Median start jitter [ms].
         jitter_p99_ms: 99th-percentile start jitter [ms].
         jitter_max_ms: Largest start jitter [ms].
+        realtime: Whether the loop thread runs at SCHED_FIFO priority.
+        realtime_note: Why not, when it does not.
     """
 
     state: str
@@ -31,6 +33,8 @@ class Health(BaseModel):
     jitter_p50_ms: float
     jitter_p99_ms: float
     jitter_max_ms: float
+    realtime: bool = False
+    realtime_note: str = ""
 
 
 class EngineStatus(BaseModel):

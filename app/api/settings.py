@@ -21,6 +21,8 @@ class Settings(BaseSettings):
         auto_connect: Connect to the backend (the simulator) at start-up.
         start_engine: Whether the lifespan touches the engine at all (tests of
             the API surface alone may say no).
+        realtime: Run the control loop at SCHED_FIFO priority where allowed
+            (root or CAP_SYS_NICE); ``/api/health`` reports whether it took.
     """
 
     model_config = SettingsConfigDict(env_prefix="CWRR_")
@@ -33,6 +35,7 @@ class Settings(BaseSettings):
     database_url: str = ""
     auto_connect: bool = True
     start_engine: bool = True
+    realtime: bool = True
 
     @property
     def db_url(self) -> str:

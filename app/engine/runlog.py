@@ -2,7 +2,10 @@
 
 Durability: rows are buffered and flushed with ``fsync`` at least once per
 ``flush_every_s`` of wall time (default 0.5 s), so a crash or ``kill -9``
-loses at most the last second. The JSON metadata is written atomically
+loses at most the last second. With ``threaded=True`` (the paced engine) a
+writer thread does the writing and the ``fsync``: a disk busy with something
+else can stall an ``fsync`` for hundreds of milliseconds, and the control
+loop must not wait for it. The JSON metadata is written atomically
 (temporary file + rename) at the start with ``"status": "running"`` and
 rewritten at the end with ``"complete"`` (or ``"interrupted"``), so a reader
 never sees a half-written JSON.
@@ -13,6 +16,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import threading
 import time
 from collections.abc import Iterable
 from pathlib import Path
@@ -43,11 +47,13 @@ class RunLogWriter:
             ``sample_rate_hz``, ``p_atm_bar``, ``working_pressure_bar``,
             ``experiment``, ``human``.
         flush_every_s: Longest wall time between durable flushes [s].
+        threaded: Write and ``fsync`` from a background thread (``append`` never touches the disk).
     """
 
     REQUIRED_META = ("rig", "sample_rate_hz", "p_atm_bar", "working_pressure_bar", "experiment", "human")
 
-    def __init__(self, directory: Path | str, name: str, meta: dict[str, Any], flush_every_s: float = 0.5) -> None:
+    def __init__(self, directory: Path | str, name: str, meta: dict[str, Any], flush_every_s: float = 0.5,
+                 threaded: bool = False) -> None:
         if not _NAME.match(name):
             raise ValueError(f"log name {name!r} must be 1–128 characters of letters, digits, '_', '.', '-'")
         missing = [k for k in self.REQUIRED_META if k not in meta]
@@ -65,31 +71,49 @@ class RunLogWriter:
         self._fh = open(self.csv_path, "w", encoding="utf-8", newline="")
         self._fh.write(",".join(LOG_COLUMNS) + "\n")
         self._buf: list[str] = []
+        self._buf_lock = threading.Lock()  # appends vs. the writer taking the buffer
+        self._io_lock = threading.Lock()  # one writer of the file at a time
         self._last_flush = time.monotonic()
         self.rows = 0
         self._sync()
         atomic_write_text(self.json_path, json.dumps(self.meta, indent=1))
+        self._done = threading.Event()
+        self._writer: threading.Thread | None = None
+        if threaded:
+            self._writer = threading.Thread(target=self._write_loop, name=f"cwrr-log-{name}", daemon=True)
+            self._writer.start()
+
+    def _write_loop(self) -> None:
+        while not self._done.wait(self.flush_every_s):
+            self.flush()
 
     def append(self, row: Iterable[float]) -> None:
         """Add one row in :data:`LOG_COLUMNS` order."""
-        self._buf.append(",".join(f"{v:.6g}" for v in row))
-        self.rows += 1
-        if time.monotonic() - self._last_flush >= self.flush_every_s:
+        line = ",".join(f"{v:.6g}" for v in row)
+        with self._buf_lock:
+            self._buf.append(line)
+            self.rows += 1
+        if self._writer is None and time.monotonic() - self._last_flush >= self.flush_every_s:
             self.flush()
 
     def append_many(self, rows: Any) -> None:
         """Add many rows (an (n, 11) array) at once, then flush."""
-        for r in rows:
-            self._buf.append(",".join(f"{v:.6g}" for v in r))
-        self.rows += len(rows)
+        lines = [",".join(f"{v:.6g}" for v in r) for r in rows]
+        with self._buf_lock:
+            self._buf.extend(lines)
+            self.rows += len(lines)
         self.flush()
 
     def flush(self) -> None:
         """Write the buffered rows durably."""
-        if self._buf:
-            self._fh.write("\n".join(self._buf) + "\n")
-            self._buf.clear()
-        self._sync()
+        with self._io_lock:
+            with self._buf_lock:
+                lines, self._buf = self._buf, []
+            if self._fh.closed:
+                return
+            if lines:
+                self._fh.write("\n".join(lines) + "\n")
+            self._sync()
 
     def _sync(self) -> None:
         self._fh.flush()
@@ -100,8 +124,12 @@ class RunLogWriter:
         """Flush, close and mark the run ``status`` in the metadata."""
         if self._fh.closed:
             return
+        self._done.set()
+        if self._writer is not None:
+            self._writer.join(10.0)
         self.flush()
-        self._fh.close()
+        with self._io_lock:
+            self._fh.close()
         self.meta.update(extra, status=status, rows=self.rows, ended_unix=time.time())
         atomic_write_text(self.json_path, json.dumps(self.meta, indent=1))
 

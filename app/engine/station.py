@@ -315,6 +315,7 @@ class Station:
         data_dir: Where run logs are written.
         sink: Optional run store.
         rate_hz: Control rate [Hz].
+        realtime: Run the paced loop at SCHED_FIFO priority where the OS allows it.
     """
 
     def __init__(
@@ -323,7 +324,9 @@ class Station:
         data_dir: Path | str = "data",
         sink: RunSink | None = None,
         rate_hz: float = CONTROL_RATE_HZ,
+        realtime: bool = False,
     ) -> None:
+        self.realtime = realtime
         self.backend_factory = backend_factory or _sim_backend
         self.data_dir = Path(data_dir)
         self.sink = sink
@@ -434,7 +437,7 @@ class Station:
             meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": P_ATM / BAR,
                     "working_pressure_bar": spec.pw_bar, "experiment": "workout", "human": True,
                     "backend": backend.name, **asdict(spec)}
-            self._log = RunLogWriter(self.data_dir / "runs", name, meta)
+            self._log = RunLogWriter(self.data_dir / "runs", name, meta, threaded=True)
             self._run_id = self.sink.run_started("workout", asdict(spec), str(self._log.csv_path)) \
                 if self.sink else None
             self._job = job
@@ -522,9 +525,11 @@ class Station:
     def health(self) -> dict[str, Any]:
         """Loop health for ``/api/health``."""
         st = self.engine.stats() if self.engine is not None else None
-        base = asdict(st) if st is not None else {"ticks": 0, "overruns": 0, "jitter_p50_ms": 0.0,
+        base: dict[str, Any] = asdict(st) if st is not None else {"ticks": 0, "overruns": 0, "jitter_p50_ms": 0.0,
                                                   "jitter_p99_ms": 0.0, "jitter_max_ms": 0.0,
-                                                  "rate_hz": self.rate_hz, "measured_rate_hz": 0.0}
+                                                  "rate_hz": self.rate_hz, "measured_rate_hz": 0.0,
+                                                  "realtime": False}
+        base["realtime_note"] = self.engine.realtime_note if self.engine is not None else "engine not running"
         return {"state": self.state.value, "backend": self.backend.name if self.backend else "none", **base}
 
     # -------------------------------------------------------------- internals
@@ -543,7 +548,8 @@ class Station:
         assert self.backend is not None and self.supervisor is not None
         if hasattr(self.backend, "period"):
             self.backend.period = 1.0 / rate_hz
-        self.engine = Engine(self.backend, self.supervisor, self.clock, rate_hz, on_tick=self._on_tick)
+        self.engine = Engine(self.backend, self.supervisor, self.clock, rate_hz, on_tick=self._on_tick,
+                             realtime=self.realtime)
         self.engine.start()
 
     def _stop_engine(self) -> None:
