@@ -12,17 +12,14 @@ from __future__ import annotations
 import csv
 import io
 import os
-import socket
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import uvicorn
 
-from app.api.main import create_app
 from app.api.settings import Settings
+from tests.conftest import free_port, live_server
 
 CHROMIUM = "/usr/bin/chromium"
 SHOTS = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
@@ -31,27 +28,13 @@ pytestmark = [pytest.mark.slow,
                                  "(./dev test installs it where apt and root are available)")]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture(scope="module")
 def station(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]]:
-    port, vport = _free_port(), _free_port()
-    app = create_app(Settings(data_dir=str(tmp_path_factory.mktemp("browser")), port=port, viser_port=vport,
-                              auto_connect=False))
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    th = threading.Thread(target=server.run, daemon=True)
-    th.start()
-    deadline = time.monotonic() + 60
-    while not server.started and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert server.started
-    yield f"http://127.0.0.1:{port}", f"http://127.0.0.1:{vport}"
-    server.should_exit = True
-    th.join(30)
+    port, vport = free_port(), free_port()
+    settings = Settings(data_dir=str(tmp_path_factory.mktemp("browser")), port=port, viser_port=vport,
+                        auto_connect=False)
+    with live_server(settings) as base:
+        yield base, f"http://127.0.0.1:{vport}"
 
 
 @pytest.fixture(scope="module")

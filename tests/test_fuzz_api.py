@@ -11,44 +11,24 @@ pronation only, references to stored sets) answer 422 by design.
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import uvicorn
 
-from app.api.main import create_app
 from app.api.settings import Settings
+from tests.conftest import free_port, live_server
 
 pytestmark = pytest.mark.slow
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture(scope="module")
 def base_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    data = Path(tmp_path_factory.mktemp("fuzz"))
-    port = _free_port()
-    app = create_app(Settings(data_dir=str(data), viser_port=0, port=port))
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    th = threading.Thread(target=server.run, daemon=True)
-    th.start()
-    deadline = time.monotonic() + 60
-    while not server.started and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert server.started, "server did not start"
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    th.join(30)
+    settings = Settings(data_dir=str(tmp_path_factory.mktemp("fuzz")), viser_port=0, port=free_port())
+    with live_server(settings) as base:
+        yield base
 
 
 def test_no_request_from_the_schema_gets_a_server_error(base_url: str, tmp_path: Path) -> None:
