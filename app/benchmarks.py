@@ -162,10 +162,9 @@ with sync_playwright() as p:
 
 
 def _normal_scheduling() -> None:
-    import os
+    from app.engine.loop import set_scheduling
 
-    if hasattr(os, "sched_setscheduler"):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    set_scheduling("SCHED_OTHER")
 
 
 def _serve_thread_priority(settings: Any) -> None:

@@ -131,6 +131,27 @@ GIL_SWITCH_S = 0.0005
 """Interpreter switch interval while a paced engine runs [s] (CPython's default is 5 ms, a whole period)."""
 
 
+def set_scheduling(policy: str, priority: int = 0) -> str:
+    """Set the calling thread's scheduling policy (threads it starts later inherit it).
+
+    Args:
+        policy: ``"SCHED_FIFO"``, ``"SCHED_RR"`` or ``"SCHED_OTHER"``.
+        priority: Static priority (1–99 for the real-time policies, 0 otherwise).
+
+    Returns:
+        ``""`` on success, else why not.
+    """
+    import os
+
+    if not hasattr(os, "sched_setscheduler"):
+        return f"no {policy} on this OS"
+    try:
+        os.sched_setscheduler(0, getattr(os, policy), os.sched_param(priority))  # 0: the calling thread
+    except (PermissionError, OSError) as exc:
+        return f"{policy} refused ({exc.strerror or exc}); needs root or CAP_SYS_NICE"
+    return ""
+
+
 def make_realtime(priority: int = RT_PRIORITY) -> str:
     """Give the calling thread SCHED_FIFO priority, if the OS allows it.
 
@@ -142,15 +163,7 @@ def make_realtime(priority: int = RT_PRIORITY) -> str:
     Returns:
         ``""`` on success, else why not.
     """
-    import os
-
-    if not hasattr(os, "sched_setscheduler"):
-        return "no SCHED_FIFO on this OS"
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))  # 0: the calling thread
-    except (PermissionError, OSError) as exc:
-        return f"SCHED_FIFO refused ({exc.strerror or exc}); needs root or CAP_SYS_NICE"
-    return ""
+    return set_scheduling("SCHED_FIFO", priority)
 
 
 SERVER_RT_PRIORITY = 10
@@ -170,15 +183,7 @@ def make_server_realtime(priority: int = SERVER_RT_PRIORITY) -> str:
     Returns:
         ``""`` on success, else why not.
     """
-    import os
-
-    if not hasattr(os, "sched_setscheduler"):
-        return "no SCHED_RR on this OS"
-    try:
-        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
-    except (PermissionError, OSError) as exc:
-        return f"SCHED_RR refused ({exc.strerror or exc}); needs root or CAP_SYS_NICE"
-    return ""
+    return set_scheduling("SCHED_RR", priority)
 
 
 class Engine:

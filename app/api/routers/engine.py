@@ -98,13 +98,8 @@ def estimate(req: RotaryIdentRequest, station: StationDep) -> Started:
     from app.engine.ident.rotary import RotaryFrictionEstimator, RotaryFrictionProcedure
 
     inputs = RotaryInputs(req.rom_deg, req.vane_area_mm2, req.radius_mm, req.ns, req.nd, req.pw_bar)
-    proc = RotaryFrictionProcedure(inputs, seed=req.seed)
-
-    def fit(p: Any) -> dict[str, Any]:
-        return _friction_result(p.data, RotaryFrictionEstimator(with_ci=False).fit(p.data).params_)
-
-    run_id = station.estimate(proc, "rotary_friction", fit, "rotary", req.model_dump())
-    return Started(run_id=run_id, status=EngineStatus(**station.status()))
+    return _identify(station, RotaryFrictionProcedure(inputs, seed=req.seed), RotaryFrictionEstimator,
+                     "rotary", req.model_dump())
 
 
 @router.post("/engine/estimate/linear", response_model=Started, responses=CONFLICT,
@@ -114,12 +109,17 @@ def estimate_linear(req: LinearIdentRequest, station: StationDep) -> Started:
     from app.engine.ident.linear import LinearFrictionEstimator, LinearFrictionProcedure
 
     inputs = LinearInputs(req.stroke_mm, req.piston_diameter_mm, req.rod_diameter_mm, req.ns, req.nd)
-    proc = LinearFrictionProcedure(inputs, seed=req.seed)
+    return _identify(station, LinearFrictionProcedure(inputs, seed=req.seed), LinearFrictionEstimator,
+                     "linear", req.model_dump())
+
+
+def _identify(station: StationDep, proc: Any, estimator: Any, rig: str, spec: dict[str, Any]) -> Started:
+    """Start a friction identification on ``rig``; the run is fitted (no CIs) when the procedure ends."""
 
     def fit(p: Any) -> dict[str, Any]:
-        return _friction_result(p.data, LinearFrictionEstimator(with_ci=False).fit(p.data).params_)
+        return _friction_result(p.data, estimator(with_ci=False).fit(p.data).params_)
 
-    run_id = station.estimate(proc, "linear_friction", fit, "linear", req.model_dump())
+    run_id = station.estimate(proc, f"{rig}_friction", fit, rig, spec)
     return Started(run_id=run_id, status=EngineStatus(**station.status()))
 
 
