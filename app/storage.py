@@ -15,11 +15,30 @@ the project). The two dialects differ only in placeholders and column types.
 from __future__ import annotations
 
 import json
+import math
 import sqlite3
 import threading
 import time
 from pathlib import Path
 from typing import Any
+
+
+def _dumps(obj: Any) -> str:
+    """JSON with non-finite numbers as null: strict JSON readers (the API, browsers) reject NaN."""
+
+    def clean(o: Any) -> Any:
+        if isinstance(o, float):
+            return o if math.isfinite(o) else None
+        if isinstance(o, dict):
+            return {k: clean(v) for k, v in o.items()}
+        if isinstance(o, list | tuple):
+            return [clean(v) for v in o]
+        if hasattr(o, "tolist"):  # numpy scalars and arrays
+            return clean(o.tolist())
+        return o
+
+    return json.dumps(clean(obj), allow_nan=False)
+
 
 _TABLES = """
 CREATE TABLE IF NOT EXISTS runs (
@@ -142,15 +161,15 @@ class Store:
         return self._insert(
             "INSERT INTO runs(kind, status, started, spec, log_csv, person, notes, session_id) "
             "VALUES (?,?,?,?,?,?,?,?)",
-            (kind, "running", time.time(), json.dumps(spec), log_csv, str(spec.get("person", "")),
+            (kind, "running", time.time(), _dumps(spec), log_csv, str(spec.get("person", "")),
              str(spec.get("notes", "")), int(sid) if sid is not None else None))
 
     def run_finished(self, run_id: int, status: str, metrics: dict[str, Any] | None,
                      result: dict[str, Any] | None) -> None:
         """Record how a run ended."""
         self._exec("UPDATE runs SET status=?, ended=?, metrics=?, result=? WHERE id=?",
-                   (status, time.time(), json.dumps(metrics) if metrics is not None else None,
-                    json.dumps(result, default=float) if result is not None else None, run_id))
+                   (status, time.time(), _dumps(metrics) if metrics is not None else None,
+                    _dumps(result) if result is not None else None, run_id))
 
     def runs(self, limit: int = 100, offset: int = 0, kind: str | None = None,
              session_id: int | None = None) -> list[dict[str, Any]]:

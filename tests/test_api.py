@@ -311,3 +311,60 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
         assert np.asarray(plots.h_torque.data[2])[-1] == 1.2 and np.asarray(plots.h_press.data[2])[0] == 2.9
     finally:
         plots.stop()
+
+
+@pytest.mark.slow
+def test_the_cpr_rig_maps_the_valve_and_fits_the_flow_model(client: TestClient) -> None:
+    """Thesis 3.2.3/4.1 through the API, on a grid small enough for CI (two band signals at 5 bar)."""
+    client.post("/api/engine/connect")
+    assert client.post("/api/engine/estimate/dcv", json={}).status_code == 409  # rotary rig connected
+    client.post("/api/engine/disconnect")
+    st = client.post("/api/engine/connect", json={"rig": "cpr"}).json()
+    assert st["rig"] == {"kind": "cpr", "cylinder": "C3"}
+    assert client.post("/api/engine/start", json={}).status_code == 409
+    assert client.post("/api/engine/tune/pid", json={}).status_code == 409
+    r = client.post("/api/engine/estimate/dcv", json={"ps_bar": [3.0, 6.0]})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "ps_bar"
+    r = client.post("/api/engine/estimate/dcv", json={"ps_bar": [5.0], "u_fill": [1.0, 5.0], "u_exh": []})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "u_fill"
+    assert "two signals" in r.json()["detail"][0]["msg"]
+    assert client.get("/api/engine").json()["state"] == "idle"  # a refusal changes nothing
+    r = client.post("/api/engine/estimate/dcv", json={
+        "ps_bar": [5.0], "u_fill": [4.8, 5.2], "u_exh": [], "validation": [["filling", 5.0, 5.0]],
+        "validation_s": 3.0})
+    assert r.status_code == 200 and r.json()["status"]["progress"]["total_tests"] == 3
+    assert client.get("/api/health").json()["rate_hz"] == 200.0
+    st = _wait(client, lambda s: s["state"] == "idle", timeout=120.0)
+    assert st["last_run"]["status"] == "finished"
+    run = client.get(f"/api/runs/{r.json()['run_id']}").json()
+    res = run["result"]
+    assert run["kind"] == "dcv_flow" and res["tests"] == {"cpr": 2, "validation": 1}
+    # C3 extended: bore area × stroke + dead volume (params.LinearCylinder)
+    assert res["inputs"]["chamber_volume_cm3"] == pytest.approx(245.3, abs=0.5)
+    rows = res["parameters"]["filling"]["table_4_1"]
+    assert [row["u"] for row in rows] == [4.8, 5.2]
+    # the valve opens towards the supply as u falls from 5 V: more pressure ratio at 4.8 V than at 5.2 V
+    assert 0.0 < rows[1]["a"] < rows[0]["a"] <= 1.0
+    assert all(row["r2"] > 0.9 for row in rows)
+    assert set(res["validation_mape_pct"]) == {"new", "standard", "improved", "bobrow"}
+    assert all(math.isfinite(v) for v in res["validation_mape_pct"].values())
+
+
+@pytest.mark.slow
+def test_the_pid_autotuner_runs_on_the_rotary_rig_and_reports_beside_the_thesis(client: TestClient) -> None:
+    """Thesis 3.6.2 through the API; a short experiment (ω_c = 6 rad/s, one analysed period)."""
+    client.post("/api/engine/connect")
+    r = client.post("/api/engine/tune/pid", json={"side": "b", "phase_margin_deg": 5})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "phase_margin_deg"
+    r = client.post("/api/engine/tune/pid", json={"side": "b", "bandwidth_rad_s": 6.0, "periods": 1})
+    assert r.status_code == 200 and r.json()["status"]["progress"]["kind"] == "pid_tuning"
+    assert client.get("/api/health").json()["rate_hz"] == 200.0
+    st = _wait(client, lambda s: s["state"] == "idle", timeout=120.0)
+    assert st["last_run"]["status"] == "finished"
+    res = client.get(f"/api/runs/{r.json()['run_id']}").json()["result"]
+    tuned = res["parameters"]
+    assert tuned["crossover_rad_s"] == pytest.approx(6.0, rel=0.05)
+    assert min(tuned["kp"], tuned["ki"], tuned["kd"]) >= 0.0 and tuned["ki"] > 0.0
+    assert set(res["gains_fields"]) == {"kp_b", "ki_b", "kd_b"}
+    assert res["thesis"]["thesis Eq 3.26"] == {"kp": 0.55, "ki": 2.042, "kd": 0.0107}  # Eq 3.26
+    assert len(res["frf"]["w_rad_s"]) == 5 and min(res["frf"]["coherence"]) > 0.9

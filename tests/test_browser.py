@@ -129,3 +129,59 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     assert Path(dl.value.path()).read_bytes()[:4] == b"PAR1"
 
     assert not errors, errors
+
+
+@pytest.mark.slow
+def test_a_researcher_tunes_a_pressure_loop_and_exercises_with_the_gains(station: tuple[str, str],
+                                                                         browser: object) -> None:
+    import json
+    import urllib.request
+
+    from playwright.sync_api import Browser, expect
+
+    assert isinstance(browser, Browser)
+    base, _viser = station
+    page = browser.new_page(viewport={"width": 1400, "height": 1000})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(base)
+    if page.locator("#state").inner_text() == "disconnected":
+        page.click("[data-action=connect]")
+    expect(page.locator("#state")).to_have_text("idle", timeout=60000)
+    expect(page.locator("#dcv-box")).to_be_hidden()  # valve identification needs the valve set-up
+    page.select_option("#pid-side", "b")
+    page.fill("#pid-bw", "6")  # ω_c = 6 rad/s: the experiment lasts 3 periods of 0.6 rad/s (31 s)
+    page.click("#tune-pid")
+    expect(page.locator("#state")).to_have_text("identifying")
+    expect(page.locator("#pid-result")).to_be_visible(timeout=90000)
+    expect(page.locator("#pid-result")).to_contain_text("thesis Eq 3.26")
+    page.evaluate("window.scrollTo(0, document.getElementById('last').getBoundingClientRect().top + scrollY - 120)")
+    page.screenshot(path=str(SHOTS / "5-pid-tuning.png"))
+    page.click("#save-gains")
+    expect(page.locator("#pid-msg")).to_contain_text("Saved as gain set")
+    set_id = page.locator("#pid-msg").inner_text().split("gain set ")[1].split(";")[0]
+    expect(page.locator(f"#gains-set option[value='{set_id}']")).to_have_count(1)
+    page.select_option("#gains-set", set_id)
+    page.click("#start")
+    expect(page.locator("#state")).to_have_text("running")
+    page.click("#stop")
+    expect(page.locator("#state")).to_have_text("idle")
+    with urllib.request.urlopen(f"{base}/api/runs?kind=workout&limit=1") as r:
+        run = json.load(r)[0]
+    with urllib.request.urlopen(f"{base}/api/params/{set_id}") as r:
+        stored = json.load(r)["payload"]
+    assert run["spec"]["gains"] == stored and stored["kp_a"] == 0.45  # the untuned side keeps Eq 3.26
+
+    # the valve set-up swaps the tuning panel for the valve identification
+    page.click("[data-action=disconnect]")
+    expect(page.locator("#state")).to_have_text("disconnected")
+    page.select_option("#rig", "cpr:C3")
+    expect(page.locator("#dcv-box")).to_be_visible()
+    expect(page.locator("#pid-box")).to_be_hidden()
+    page.click("[data-action=connect]")
+    expect(page.locator("#state")).to_have_text("idle", timeout=60000)
+    expect(page.locator("#estimate-dcv")).to_be_enabled()
+    expect(page.locator("#estimate")).to_be_disabled()  # friction identification is not for this set-up
+    expect(page.locator("#start")).to_be_disabled()
+    page.click("[data-action=disconnect]")
+    assert not errors, errors

@@ -41,6 +41,19 @@ def test_frequency_response_estimate_matches_python_control() -> None:
     assert frf.coherence.min() > 0.99
 
 
+def test_a_record_of_exactly_one_slow_period_is_enough() -> None:
+    # periods=1: after the settling period the record holds N samples of one period,
+    # whose first-to-last span is one sample short of it
+    dt = 0.005
+    n = int(round(2 * math.pi / W.min() / dt))
+    t = np.arange(n) * dt
+    u = sum(0.05 * np.sin(w * t) for w in W)
+    frf = estimate_frf(t, u, 0.5 * u, W)
+    np.testing.assert_allclose(frf.g, 0.5, rtol=1e-9)
+    with pytest.raises(ParameterError, match="shorter than one period"):
+        estimate_frf(t[: n // 2], u[: n // 2], u[: n // 2], W)
+
+
 def test_tuner_meets_bandwidth_and_phase_margin_when_feasible() -> None:
     """A plant lagging > 30° at ω_c: both targets are reachable with gains ≥ 0 (python-control as oracle)."""
     g = _fopdt()

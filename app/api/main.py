@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -73,9 +74,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.exception_handler(ParameterError)
     async def invalid(request: Request, exc: ParameterError) -> JSONResponse:
-        field, _sep, msg = str(exc).partition(": ")
-        if not msg:
+        # "field: message" names the field; "field = value: why" keeps the value in the message
+        head, _sep, msg = str(exc).partition(": ")
+        m = re.fullmatch(r"([A-Za-z_]\w*)( = .*)?", head)
+        if not msg or m is None:
             field, msg = "body", str(exc)
+        else:
+            field = m.group(1)
+            msg = str(exc) if m.group(2) else msg
         return JSONResponse(status_code=422, content={"detail": [{"loc": ["body", field], "msg": msg,
                                                                   "type": "value_error"}]})
 

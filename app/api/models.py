@@ -91,13 +91,15 @@ class ConnectRequest(BaseModel):
     """Which rig to connect.
 
     Attributes:
-        rig: ``rotary`` (the CWRR forearm axis) or ``linear`` (the linear test cylinder of thesis 3.2.4).
-        cylinder: Cylinder on the simulated linear rig (thesis Table 3.3).
+        rig: ``rotary`` (the CWRR forearm axis), ``linear`` (the linear test
+            cylinder of thesis 3.2.4) or ``cpr`` (the constant-volume set-up of
+            Figure 3.10 for the directional valve's identification).
+        cylinder: Cylinder on the simulated linear / CPR rig (the cylinders of thesis Tables 4.5–4.6).
     """
 
     model_config = ConfigDict(extra="forbid")
 
-    rig: Literal["rotary", "linear"] = "rotary"
+    rig: Literal["rotary", "linear", "cpr"] = "rotary"
     cylinder: Literal["C1", "C2", "C3"] = "C3"
 
 
@@ -177,6 +179,74 @@ class RotaryIdentRequest(BaseModel):
     nd: int = 30
     pw_bar: float = 3.0
     seed: int = Field(0, ge=0, le=2**31 - 1)
+
+
+Triple = tuple[Literal["filling", "exhausting"], float, float]
+
+
+class DCVIdentRequest(BaseModel):
+    """Directional-valve identification inputs (thesis 3.2.3 and 4.1; SPEC §3 grid by default).
+
+    Attributes:
+        ps_bar: Supply pressures to map [bar abs]; must include ``fit_ps_bar``.
+        u_fill: Filling signals [V] (empty: map exhausting only).
+        u_exh: Exhausting signals [V] (empty: map filling only).
+        band_fill: Unstable band fitted for filling [V].
+        band_exh: Unstable band fitted for exhausting [V].
+        fit_ps_bar: Supply pressure the flow model is fitted at [bar abs] (Table 4.1: 5).
+        chamber_volume_cm3: Chamber a's volume, cylinder extended, dead volume
+            included [cm³]; default the connected simulated cylinder's (required
+            on a real rig).
+        temperature_k: Air temperature [K].
+        polytropic_n: n of Eq 4.1 (1 isothermal … 1.4 adiabatic).
+        validation: (mode, u [V], P_s [bar abs]) runs after the map, each
+            ``validation_s`` long: predicted vs measured P_a for all four
+            flow models (Figures 4.6–4.11).
+        validation_s: Length of each validation run [s] (thesis: 15).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    ps_bar: list[float] = Field(default_factory=lambda: [2.0, 3.0, 4.0, 5.0, 6.0, 7.0], min_length=1,
+                                max_length=20)
+    u_fill: list[float] = Field(default_factory=lambda: [round(0.1 * i, 1) for i in range(60)], max_length=200)
+    u_exh: list[float] = Field(default_factory=lambda: [round(4.0 + 0.1 * i, 1) for i in range(61)],
+                               max_length=200)
+    band_fill: tuple[float, float] = (4.5, 5.7)
+    band_exh: tuple[float, float] = (4.5, 5.9)
+    fit_ps_bar: float = 5.0
+    chamber_volume_cm3: float | None = None
+    temperature_k: float = 293.15
+    polytropic_n: float = 1.0
+    validation: list[Triple] = Field(default_factory=list, max_length=100)
+    validation_s: float = 15.0
+
+
+class PIDTuneRequest(BaseModel):
+    """Frequency-response autotune of one PRV pressure loop (thesis 3.6.2), on the rotary rig.
+
+    Attributes:
+        side: ``a`` (PRV-a) or ``b`` (PRV-b).
+        bandwidth_rad_s: Target crossover [rad/s] (thesis: 2).
+        phase_margin_deg: Target phase margin [deg] (thesis: 60).
+        pw_bar: Operating pressure [bar abs].
+        amplitude_bar: Amplitude of each injected sine [bar].
+        periods: Whole periods of the slowest sine analysed (the experiment
+            lasts periods + 1 of them: 94 s at the thesis's 2 rad/s and 2 periods).
+        n_filter: Derivative filter coefficient N [1/s] (thesis: 100).
+        initial: Gains (K_p [-], K_i [1/s], K_d [s]) the loop runs with during the experiment.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    side: Literal["a", "b"] = "a"
+    bandwidth_rad_s: float = 2.0
+    phase_margin_deg: float = 60.0
+    pw_bar: float = 3.0
+    amplitude_bar: float = 0.05
+    periods: int = Field(2, ge=1, le=20)
+    n_filter: float = Field(100.0, gt=0.0, le=1e4)
+    initial: tuple[float, float, float] = (0.25, 1.5, 0.0005)
 
 
 class Started(BaseModel):

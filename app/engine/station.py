@@ -37,7 +37,7 @@ from app.engine.control.config import ControllerConfig, ControllerName
 from app.engine.control.interaction import InteractionController
 from app.engine.hardware.base import SAFE_COMMAND, Command, HardwareInterface, Measurement
 from app.engine.loop import Controller, Engine, WallClock
-from app.engine.params import ParameterError, PlantParams
+from app.engine.params import ParameterError, PlantParams, SensorParams
 from app.engine.runlog import RunLogWriter
 from app.engine.scenarios import SCENARIOS, Case, ScenarioSettings, case_controller, case_program, score_case
 
@@ -96,14 +96,20 @@ LINEAR_IDENT_RATE_HZ = 200.0
 """Linear friction identification rate [Hz] (thesis 4.2.2)."""
 
 
+RIG_KINDS = ("rotary", "linear", "cpr")
+
+
 @dataclass(frozen=True)
 class Rig:
     """Which rig the station drives.
 
     Attributes:
-        kind: ``"rotary"`` (the CWRR forearm axis: workouts and rotary
-            identification) or ``"linear"`` (the linear test cylinder of
-            thesis 3.2.4: linear friction identification).
+        kind: ``"rotary"`` (the CWRR forearm axis: workouts, rotary
+            identification, PID tuning), ``"linear"`` (the linear test
+            cylinder of thesis 3.2.4: linear friction identification) or
+            ``"cpr"`` (the constant-volume set-up of Figure 3.10: the linear
+            cylinder held extended, chamber b open, PS-0 at DCV-a's supply
+            port: the directional valve's CPR map and flow model).
         cylinder: The thesis's cylinder on the linear rig (``"C1"``, ``"C2"``, ``"C3"``;
             the simulator's catalogue — a real rig ignores it).
     """
@@ -112,10 +118,11 @@ class Rig:
     cylinder: str = "C3"
 
     def __post_init__(self) -> None:
-        if self.kind not in ("rotary", "linear"):
-            raise ParameterError(f"rig: {self.kind!r} must be 'rotary' or 'linear'")
+        if self.kind not in RIG_KINDS:
+            raise ParameterError(f"rig: {self.kind!r} must be one of {', '.join(RIG_KINDS)}")
         if self.cylinder not in ("C1", "C2", "C3"):
-            raise ParameterError(f"cylinder: {self.cylinder!r} must be C1, C2 or C3 (thesis Table 3.3)")
+            raise ParameterError(f"cylinder: {self.cylinder!r} must be C1, C2 or C3 "
+                                 "(the cylinders of thesis Tables 4.5–4.6)")
 
 
 class RunSink(Protocol):
@@ -371,6 +378,18 @@ class Station:
         if st not in ALLOWED[action]:
             raise TransitionError(action, st)
 
+    def require(self, action: str, rig: str | None = None) -> None:
+        """Raise :class:`TransitionError` unless ``action`` is legal now (on ``rig``, if given).
+
+        Lets a caller refuse before it does costly preparation; the action
+        itself checks again under the lock.
+        """
+        with self._lock:
+            self._require(action)
+            if rig is not None and self.rig.kind != rig:
+                raise TransitionError(action, self.state, f"this needs the {rig} rig; the {self.rig.kind} rig is "
+                                      f"connected (disconnect and connect rig={rig})")
+
     # ---------------------------------------------------------------- actions
 
     def connect(self, rig: Rig | None = None) -> None:
@@ -411,8 +430,8 @@ class Station:
         with self._lock:
             self._require("start")
             if self.rig.kind != "rotary":
-                raise TransitionError("start", self.state, "workouts run on the rotary rig; "
-                                      "the linear test cylinder is connected (disconnect and connect rig=rotary)")
+                raise TransitionError("start", self.state, f"workouts run on the rotary rig; the {self.rig.kind} "
+                                      "rig is connected (disconnect and connect rig=rotary)")
             assert self.backend is not None and self.supervisor is not None
             settings = spec.settings
             case = spec.case
@@ -448,21 +467,21 @@ class Station:
             return self._run_id
 
     def estimate(self, procedure: Any, kind: str, fit: Callable[[Any], dict[str, Any]],
-                 rig: str = "rotary", spec: dict[str, Any] | None = None) -> int | None:
-        """idle → identifying: run an identification procedure at its rate (rotary 500 Hz, linear 200 Hz).
+                 rig: str = "rotary", spec: dict[str, Any] | None = None,
+                 rate_hz: float | None = None) -> int | None:
+        """idle → identifying: run an identification procedure at its rate.
 
         Args:
             procedure: A :class:`~app.engine.ident.procedure.Procedure`.
             kind: Result kind (e.g. ``"rotary_friction"``).
             fit: Turns the finished procedure into a JSON-able result.
-            rig: The rig the procedure needs (``"rotary"`` or ``"linear"``).
+            rig: The rig the procedure needs (one of :data:`RIG_KINDS`).
             spec: What was asked for (stored with the run).
+            rate_hz: Loop rate [Hz]; default 500 on the rotary rig (thesis
+                4.2.1), 200 on the others (4.2.2).
         """
         with self._lock:
-            self._require("estimate")
-            if self.rig.kind != rig:
-                raise TransitionError("estimate", self.state, f"this identification needs the {rig} rig; the "
-                                      f"{self.rig.kind} rig is connected (disconnect and connect rig={rig})")
+            self.require("estimate", rig)
             assert self.backend is not None and self.supervisor is not None
             set_program = getattr(self.backend, "set_program", None)
             if set_program is not None:
@@ -474,7 +493,7 @@ class Station:
             self._run_id = self.sink.run_started(kind, {"procedure": procedure.name, **(spec or {})}, "") \
                 if self.sink else None
             self.supervisor.job = procedure
-            self._start_engine(ROTARY_IDENT_RATE_HZ if rig == "rotary" else LINEAR_IDENT_RATE_HZ)
+            self._start_engine(rate_hz or (ROTARY_IDENT_RATE_HZ if rig == "rotary" else LINEAR_IDENT_RATE_HZ))
             self._state = State.IDENTIFYING
             return self._run_id
 
@@ -650,7 +669,12 @@ def _sim_backend(clock: WallClock, period: float, rig: Rig) -> HardwareInterface
     from app.engine.hardware.sim import SimulatedRig
     from app.engine.human import HumanProgram
 
-    params = PlantParams() if rig.kind == "rotary" else PlantParams.linear_rig(rig.cylinder)  # type: ignore[arg-type]
+    if rig.kind == "rotary":
+        params = PlantParams()
+    elif rig.kind == "linear":
+        params = PlantParams.linear_rig(rig.cylinder)  # type: ignore[arg-type]
+    else:  # Figure 3.10: PS-0 moved to the DCV's supply port
+        params = PlantParams.linear_rig(rig.cylinder, sensors=SensorParams(supply_tap="prv_a"))  # type: ignore[arg-type]
     sim = SimulatedRig(clock, params, period=period)
     sim.set_program(HumanProgram.rest() if rig.kind == "rotary" else HumanProgram.absent())
     return sim

@@ -10,16 +10,18 @@ from fastapi import APIRouter, Query
 from app.api.deps import StationDep, StoreDep
 from app.api.models import (
     ConnectRequest,
+    DCVIdentRequest,
     EngineStatus,
     Health,
     LinearIdentRequest,
     LiveData,
+    PIDTuneRequest,
     RotaryIdentRequest,
     RunRequest,
     Started,
 )
 from app.engine.params import ParameterError
-from app.engine.station import LIVE_COLUMNS, Rig, RunSpec
+from app.engine.station import CONTROL_RATE_HZ, LIVE_COLUMNS, Rig, RunSpec
 
 router = APIRouter(prefix="/api", tags=["engine"])
 CONFLICT: dict[int | str, dict[str, Any]] = {409: {"description": "Illegal in the current state (says why)"}}
@@ -111,6 +113,73 @@ def estimate_linear(req: LinearIdentRequest, station: StationDep) -> Started:
     inputs = LinearInputs(req.stroke_mm, req.piston_diameter_mm, req.rod_diameter_mm, req.ns, req.nd)
     return _identify(station, LinearFrictionProcedure(inputs, seed=req.seed), LinearFrictionEstimator,
                      "linear", req.model_dump())
+
+
+@router.post("/engine/estimate/dcv", response_model=Started, responses=CONFLICT,
+             summary="idle → identifying: directional-valve CPR map and flow-model fit (thesis 3.2.3, 4.1; cpr rig)")
+def estimate_dcv(req: DCVIdentRequest, station: StationDep) -> Started:
+    from dataclasses import asdict
+
+    from app.engine.ident.dcv import CPRProcedure, DCVFlowEstimator, DCVInputs, check_fittable
+
+    station.require("estimate", "cpr")
+    volume = req.chamber_volume_cm3
+    if volume is None:
+        params = getattr(station.backend, "params", None)
+        cyl = getattr(params, "linear", None)
+        if cyl is None:
+            raise ParameterError("chamber_volume_cm3: give chamber a's volume with the cylinder extended "
+                                 "(the connected backend does not know it)")
+        volume = (cyl.area_a * cyl.stroke + cyl.dead_volume_a) * 1e6
+    inputs = DCVInputs(volume, tuple(req.ps_bar), tuple(req.u_fill), tuple(req.u_exh), req.band_fill,
+                       req.band_exh, req.temperature_k, req.polytropic_n)
+    check_fittable(inputs, req.fit_ps_bar)
+    modes = tuple(m for m, us in (("filling", req.u_fill), ("exhausting", req.u_exh)) if us)
+    proc = CPRProcedure(inputs, modes=modes, validation=[(m, float(u), float(ps)) for m, u, ps in req.validation],
+                        validation_s=req.validation_s)
+
+    def fit(p: CPRProcedure) -> dict[str, Any]:
+        est = DCVFlowEstimator(req.fit_ps_bar).fit(p.data)
+        out: dict[str, Any] = {"parameters": est.as_dict(), "inputs": asdict(inputs),
+                               "tests": {"cpr": len(p.data.tests), "validation": len(p.validation_data.tests)},
+                               "cpr_tests": p.data.as_dict()["tests"]}
+        if p.validation_data.tests:
+            cases = est.validate(p.validation_data)
+            out["validation"] = [c.summary() for c in cases]
+            out["validation_mape_pct"] = {m: float(sum(c.mape_pct[m] for c in cases) / len(cases))
+                                          for m in cases[0].mape_pct}
+        return out
+
+    run_id = station.estimate(proc, "dcv_flow", fit, "cpr", req.model_dump() | {"chamber_volume_cm3": volume})
+    return Started(run_id=run_id, status=EngineStatus(**station.status()))
+
+
+@router.post("/engine/tune/pid", response_model=Started, responses=CONFLICT,
+             summary="idle → identifying: frequency-response autotune of one PRV loop (thesis 3.6.2; rotary rig)")
+def tune_pid(req: PIDTuneRequest, station: StationDep) -> Started:
+    from dataclasses import asdict
+
+    from app.engine.ident import pid_tune as pt
+
+    station.require("estimate", "rotary")
+    spec = pt.AutotuneSpec(req.side, req.bandwidth_rad_s, req.phase_margin_deg, req.pw_bar, req.amplitude_bar,
+                           req.periods, req.n_filter, req.initial)
+
+    def fit(p: pt.PIDAutotuneProcedure) -> dict[str, Any]:
+        frf = p.frf()
+        tuning = pt.tune_pid(frf, spec.bandwidth_rad_s, spec.phase_margin_deg, spec.n_filter)
+        thesis = {"thesis autotuner": pt.THESIS_TUNED[spec.side], "thesis Eq 3.26": pt.THESIS_FINAL[spec.side]}
+        margins = {k: dict(zip(("crossover_rad_s", "phase_margin_deg"), pt.loop_margins(frf, *g, spec.n_filter),
+                               strict=True)) for k, g in thesis.items()}
+        side = spec.side
+        return {"parameters": asdict(tuning), "frf": frf.as_dict(),
+                "gains_fields": {f"kp_{side}": tuning.kp, f"ki_{side}": tuning.ki, f"kd_{side}": tuning.kd},
+                "thesis": {k: dict(zip(("kp", "ki", "kd"), g, strict=True)) for k, g in thesis.items()},
+                "thesis_margins": margins}
+
+    run_id = station.estimate(pt.PIDAutotuneProcedure(spec), "pid_tuning", fit, "rotary", req.model_dump(),
+                              rate_hz=CONTROL_RATE_HZ)
+    return Started(run_id=run_id, status=EngineStatus(**station.status()))
 
 
 def _identify(station: StationDep, proc: Any, estimator: Any, rig: str, spec: dict[str, Any]) -> Started:

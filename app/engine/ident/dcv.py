@@ -117,9 +117,11 @@ class DCVInputs:
         for p in self.ps_bar:
             if not (math.isfinite(p) and 1.0 <= p <= 8.0):
                 raise ParameterError(f"ps_bar = {p}: {MSG_PW}")
+        if not self.u_fill and not self.u_exh:
+            raise ParameterError("u_fill: give filling or exhausting signals (or both)")
         for name in ("u_fill", "u_exh"):
             us = getattr(self, name)
-            if not us or any(not (math.isfinite(u) and 0.0 <= u <= 10.0) for u in us):
+            if any(not (math.isfinite(u) and 0.0 <= u <= 10.0) for u in us):
                 raise ParameterError(f"{name}: DCV signals must lie in 0–10 V")
         for name in ("band_fill", "band_exh"):
             lo, hi = getattr(self, name)
@@ -139,6 +141,25 @@ class DCVInputs:
     def n_tests(self) -> int:
         """Tests in a full CPR map."""
         return len(self.ps_bar) * (len(self.u_fill) + len(self.u_exh))
+
+
+def check_fittable(inputs: DCVInputs, fit_ps_bar: float = FIT_PS_BAR) -> None:
+    """Refuse, before any air moves, a grid the flow-model fit cannot use.
+
+    The flow model is fitted at one supply pressure (Table 4.1: 5 bar) on the
+    signals of each mode's unstable band, at least two of them.
+
+    Raises:
+        ParameterError: Naming the field to change.
+    """
+    if not any(abs(p - fit_ps_bar) < 1e-6 for p in inputs.ps_bar):
+        raise ParameterError(f"ps_bar: the flow model is fitted at {fit_ps_bar:g} bar (Table 4.1); include it")
+    for name, band in (("u_fill", inputs.band_fill), ("u_exh", inputs.band_exh)):
+        us = getattr(inputs, name)
+        inside = [u for u in us if band[0] - 1e-9 <= u <= band[1] + 1e-9]
+        if us and len(inside) < 2:
+            raise ParameterError(f"{name}: needs at least two signals inside the unstable band "
+                                 f"{band[0]:g}–{band[1]:g} V to fit the flow model (has {len(inside)})")
 
 
 @dataclass
@@ -221,26 +242,36 @@ class CPRProcedure(Procedure):
         fixed_s: If set, every test lasts exactly this long instead of ending
             at Ṗ_a ≈ 0 — the validation runs of 4.1.3 (15 s) [s].
         cases: If set, run these (mode, u, P_s) instead of the full grid.
+        validation: (mode, u, P_s) runs of ``validation_s`` each after the
+            map (4.1.3, Figures 4.6–4.11), kept apart in :attr:`validation_data`.
+        validation_s: Length of each validation run [s] (thesis: 15).
     """
 
     name = "dcv_cpr"
 
     def __init__(self, inputs: DCVInputs, modes: tuple[str, ...] = ("filling", "exhausting"),
-                 fixed_s: float | None = None, cases: list[tuple[str, float, float]] | None = None) -> None:
+                 fixed_s: float | None = None, cases: list[tuple[str, float, float]] | None = None,
+                 validation: list[tuple[str, float, float]] | None = None, validation_s: float = 15.0) -> None:
         super().__init__(vent_s=0.5)
         self.inputs = inputs
         self.data = CPRData(inputs)
+        self.validation_data = CPRData(inputs)
         self.fixed_s = fixed_s
         if cases is None:
             cases = [(m, u, ps) for m in modes for ps in inputs.ps_bar
                      for u in (inputs.u_fill if m == "filling" else inputs.u_exh)]
-        for m, u, ps in cases:
+        validation = validation or []
+        for m, u, ps in [*cases, *validation]:
             if m not in ("filling", "exhausting"):
                 raise ParameterError(f"mode = {m!r} must be 'filling' or 'exhausting'")
             if not (0.0 <= u <= 10.0 and 1.0 <= ps <= 8.0):
                 raise ParameterError(f"case ({m}, {u} V, {ps} bar) outside 0–10 V / 1–8 bar")
+        if not (math.isfinite(validation_s) and MIN_TEST_S <= validation_s <= 120.0):
+            raise ParameterError(f"validation_s = {validation_s}: must lie in {MIN_TEST_S:g}–120 s")
         self.cases = cases
-        self.progress.total_tests = len(cases)
+        self.validation = validation
+        self.validation_s = validation_s
+        self.progress.total_tests = len(cases) + len(validation)
 
     def z_for(self, ps_bar: float) -> float:
         """PRV command for supply pressure ``ps_bar`` [V] (P_s = z + P_atm)."""
@@ -265,9 +296,16 @@ class CPRProcedure(Procedure):
             block = list(group)
             it = iter(block)
             yield from self.block(f"{m} P_s = {ps:g} bar", len(block), partial(self._next_case, it))
+        if self.validation:
+            self.validation_data.p_atm_bar = self.data.p_atm_bar
+            it = iter(self.validation)
+            yield from self.block("validation", len(self.validation), partial(self._next_validation, it))
 
     def _next_case(self, it: Iterator[tuple[str, float, float]]) -> Script:
         return self.test(*next(it))
+
+    def _next_validation(self, it: Iterator[tuple[str, float, float]]) -> Script:
+        return self.test(*next(it), into=self.validation_data, fixed_s=self.validation_s)
 
     def _settle(self, cmd: Command, target: float, tol: float, timeout: float) -> Script:
         """Hold ``cmd`` until P_a is within ``tol`` of ``target`` and steady [bar]."""
@@ -280,8 +318,14 @@ class CPRProcedure(Procedure):
             if len(buf) >= n and abs(float(np.mean(buf[-n:])) - target) < tol and np.ptp(buf[-n:]) < 4 * tol:
                 return
 
-    def test(self, mode: str, u: float, ps: float) -> Script:
-        """One CPR experiment (3.2.3 steps 2–4)."""
+    def test(self, mode: str, u: float, ps: float, into: CPRData | None = None,
+             fixed_s: float | None = None) -> Script:
+        """One CPR experiment (3.2.3 steps 2–4), kept in ``into`` (default :attr:`data`).
+
+        ``fixed_s`` (default the procedure's) makes it last exactly that long [s].
+        """
+        into = self.data if into is None else into
+        fixed_s = self.fixed_s if fixed_s is None else fixed_s
         z = self.z_for(ps)
         if mode == "filling":
             yield from self._settle(self.cmd(z, 10.0), self.data.p_atm_bar, 0.01, 10.0)
@@ -297,12 +341,12 @@ class CPRProcedure(Procedure):
         tt -= tt.mean()
         den = float(tt @ tt)
         settled = False
-        limit = self.fixed_s if self.fixed_s is not None else MAX_TEST_S
+        limit = fixed_s if fixed_s is not None else MAX_TEST_S
         while self.meas.t - t0 < limit - 0.5 * self.dt:
             yield cmd
             p.append(self.meas.p_a)
             s.append(self.meas.p_s)
-            if self.fixed_s is None and len(p) >= n_win and len(p) % check_every == 0 \
+            if fixed_s is None and len(p) >= n_win and len(p) % check_every == 0 \
                     and self.meas.t - t0 >= MIN_TEST_S:
                 slope = float(tt @ np.asarray(p[-n_win:])) / den
                 if abs(slope) < STEADY_SLOPE_BAR_S:
@@ -316,10 +360,10 @@ class CPRProcedure(Procedure):
         if abs(ps_end - ps) > PS_TAP_TOL_BAR:
             raise RuntimeError(f"PS-0 reads {ps_end:.2f} bar with PRV-a set to {ps:g} bar: in the CPR set-up "
                                "PS-0 must measure the DCV's supply port (Figure 3.10)")
-        if self.fixed_s is not None:
+        if fixed_s is not None:
             settled = True
         a = p_end / ps_end if mode == "filling" else self.data.p_atm_bar / p_end
-        self.data.tests.append(CPRTest(mode, float(u), float(ps), float(a), p_end, settled, t0, pa, self.dt, psm))
+        into.tests.append(CPRTest(mode, float(u), float(ps), float(a), p_end, settled, t0, pa, self.dt, psm))
 
 
 # --------------------------------------------------------------------------- flow data
