@@ -7,6 +7,7 @@ import json
 import math
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -302,6 +303,22 @@ def _serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _diagnose(args: argparse.Namespace) -> int:
+    """Diagnose the logs in ``args.logdir`` and print the verdict (issue 6)."""
+    from app.engine.diagnosis.run import diagnose_dir
+
+    report = diagnose_dir(args.logdir, adapter=args.adapter, held_out=args.held_out)
+    if args.json_out:
+        Path(args.json_out).write_text(json.dumps(report, indent=1))
+    for name, r in (report["reports"].items() if "reports" in report else [("", report)]):
+        v = r["verdict"]
+        print(f"{name + ': ' if name else ''}{v['summary']}"
+              + (f" (confusable with {', '.join(v['confusable_with'])})" if v["confusable_with"] else "")
+              + f"; E {r['how_far']['e_before']:.3g} → {r['how_far']['e_after']:.3g} "
+              f"(floor {r['how_far']['e_floor']:.3g})")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``cwrr`` and ``python -m app``."""
     ap = argparse.ArgumentParser(prog="cwrr", description="CWRR lab station")
@@ -352,6 +369,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     i.add_argument("--progress", action="store_true", help="print 'experiment k of N' to stderr")
     i.add_argument("--json", action="store_true", help="print only the contract JSON")
     i.set_defaults(fn=_identify)
+    g = sub.add_parser("diagnose", help="sim-to-real gap diagnosis of a directory of logs")
+    g.add_argument("logdir", help="directory of logs (NAME.csv + NAME.json; or an adapter's files)")
+    g.add_argument("--json", dest="json_out", default="", help="write the report here")
+    g.add_argument("--adapter", choices=("auto", "station", "chamber_leak", "emps"), default="auto",
+                   help="log format (auto: by the files found)")
+    g.add_argument("--held-out", nargs="*", default=None,
+                   help="experiment names to withhold from fitting (default: the last third by name; "
+                        "one experiment: its last 40 %%)")
+    g.set_defaults(fn=_diagnose)
     v = sub.add_parser("serve", help="start the lab station server on the simulated plant")
     v.add_argument("--host", default="127.0.0.1")
     v.add_argument("--port", type=int, default=8000)

@@ -1,0 +1,527 @@
+"""The fitting core of the gap diagnosis: recalibrate, locate, attribute, measure the closure.
+
+A *family* describes one kind of rig: its measured channels, the baseline
+model's parameters (what the thesis models), and the candidate effects it can
+add (each at most three bounded parameters, named as in
+:data:`~app.engine.params.EFFECT_NAMES`). The core is family-agnostic:
+
+1. **Recalibrate** the baseline on the calibration experiments (bounded
+   least squares on noise-whitened residuals) and report identifiability:
+   parameter SDs from the Jacobian, their correlation matrix, the condition
+   number, and parameters stuck on a bound — so that parameter error is not
+   blamed on a missing effect.
+2. **Where**: the baseline's residuals per channel and per regime, their
+   whiteness (lag autocorrelation, Ljung–Box) and cross-correlation with the
+   inputs.
+3. **Which**: each candidate is fitted on the calibration experiments together
+   with the baseline parameters and scored on held-out experiments: NRMSE per
+   channel, gap closure GC = (E_base − E_with)/(E_base − E_floor) with E the
+   channel-mean NRMSE and E_floor the noise floor's, ΔBIC on the calibration
+   fit, a bootstrap CI of GC over held-out experiments (or over blocks of
+   time when fewer than four are held out). An effect is *significant* when
+   ΔBIC > 10 (strong evidence), the CI's lower end is above zero, GC ≥ 0.2,
+   and it lowers the held-out RMS error of some channel by more than the
+   family's *relevance* (the smallest error that matters on the rig, e.g. the
+   PRV's 0.01 bar deadband). Significant effects are added greedily (each
+   next one judged against the model that already has the previous ones).
+4. **Confusable**: a candidate that also explains the gap (significant, or
+   relevant with a GC CI reaching the winner's) while the paired bootstrap CI
+   of GC(winner) − GC(candidate) contains zero is reported as confusable —
+   the held-out data cannot say which does more — with the protocol
+   experiments that would tell the two apart.
+5. **How far**: NRMSE per channel before and after the selected effects, and
+   the gap left unexplained.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from scipy import stats
+from scipy.optimize import least_squares
+
+BIC_STRONG = 10.0  # Kass & Raftery (1995): ΔBIC > 10 is very strong evidence
+GC_MIN = 0.2
+N_BOOT = 300
+MAX_EFFECTS = 3
+
+
+@dataclass(frozen=True)
+class Param:
+    """One bounded model parameter.
+
+    Attributes:
+        name: Name (``effect.param`` for effect parameters).
+        x0: Initial value.
+        lo: Lower bound.
+        hi: Upper bound.
+        unit: Unit.
+        log: Fit in log space (spans decades; needs ``lo > 0``).
+    """
+
+    name: str
+    x0: float
+    lo: float
+    hi: float
+    unit: str = ""
+    log: bool = False
+
+
+class Family(Protocol):
+    """What the core needs to know about a kind of rig."""
+
+    name: str
+    channels: tuple[str, ...]
+    candidates: tuple[str, ...]
+    relevance: dict[str, float]
+
+    def baseline(self) -> list[Param]:
+        """Baseline (thesis-model) parameters to recalibrate."""
+        ...
+
+    def effect(self, name: str) -> list[Param]:
+        """The ≤ 3 parameters of candidate effect ``name``."""
+        ...
+
+    def prepare(self, exp: Any) -> Any:
+        """Per-experiment precomputation (filtering, derived signals)."""
+        ...
+
+    def measured(self, prep: Any) -> dict[str, np.ndarray]:
+        """Measured channels aligned with :meth:`predict`."""
+        ...
+
+    def predict(self, prep: Any, x: dict[str, float], effects: tuple[str, ...]) -> dict[str, np.ndarray]:
+        """Predicted channels under parameters ``x`` with ``effects`` added."""
+        ...
+
+    def noise(self, prep: Any) -> dict[str, float]:
+        """Noise SD per channel (the floor no model can beat)."""
+        ...
+
+    def regimes(self, prep: Any) -> dict[str, np.ndarray]:
+        """Boolean masks of operating regimes (aligned with :meth:`measured`)."""
+        ...
+
+    def inputs(self, prep: Any) -> dict[str, np.ndarray]:
+        """Input signals for the cross-correlation test (aligned)."""
+        ...
+
+
+@dataclass
+class Fit:
+    """A fitted model.
+
+    Attributes:
+        effects: Effects added to the baseline.
+        params: Fitted values by name.
+        sd: Standard deviations (Jacobian-based) by name.
+        at_bound: Parameters that ended on a bound.
+        corr: Correlation matrix of the parameters (row order of ``params``).
+        cond: Condition number of the whitened Jacobian.
+        rss: Whitened residual sum of squares on the calibration data.
+        n: Residuals.
+        k: Parameters.
+    """
+
+    effects: tuple[str, ...]
+    params: dict[str, float]
+    sd: dict[str, float]
+    at_bound: list[str]
+    corr: np.ndarray
+    cond: float
+    rss: float
+    n: int
+    k: int
+
+    @property
+    def bic(self) -> float:
+        """n·ln(RSS/n) + k·ln(n) on the whitened calibration residuals."""
+        return self.n * math.log(max(self.rss, 1e-300) / self.n) + self.k * math.log(self.n)
+
+    def identifiability(self) -> dict[str, Any]:
+        """JSON view: SDs, bounds hit, strongly correlated pairs (|r| > 0.95), condition number."""
+        names = list(self.params)
+        pairs = [[names[i], names[j], float(self.corr[i, j])] for i in range(len(names))
+                 for j in range(i + 1, len(names)) if abs(self.corr[i, j]) > 0.95]
+        return {"params": self.params, "sd": self.sd, "at_bound": self.at_bound, "condition_number": self.cond,
+                "correlated_pairs": pairs}
+
+
+@dataclass
+class Scores:
+    """Held-out errors of one model.
+
+    Attributes:
+        sse: Per held-out unit (experiment or block), per channel: Σ residual².
+        cnt: Per unit, per channel: samples.
+        pred: Predictions per prepared experiment.
+    """
+
+    sse: np.ndarray
+    cnt: np.ndarray
+    pred: list[dict[str, np.ndarray]] = field(default_factory=list)
+
+
+def white_noise_sd(x: np.ndarray) -> float:
+    """SD of the white noise on a sampled signal, robust to the signal itself.
+
+    From the median absolute second difference: for white noise of SD σ the
+    second difference has SD σ·√6, while a smooth signal (or a few steps)
+    barely moves the median.
+    """
+    d2 = np.diff(np.asarray(x, dtype=float), 2)
+    d2 = d2[np.isfinite(d2)]
+    if d2.size == 0:
+        return 0.0
+    mad = float(np.median(np.abs(d2 - np.median(d2))) / 0.6745 / math.sqrt(6.0))
+    # a quantised signal with little noise has a zero median difference; its floor is the LSB's
+    steps = np.abs(np.diff(np.asarray(x, dtype=float)))
+    steps = steps[steps > 0]
+    lsb = float(steps.min()) if steps.size else 0.0
+    return max(mad, lsb / math.sqrt(12.0))
+
+
+def _specs(family: Family, effects: Sequence[str]) -> list[Param]:
+    specs = list(family.baseline())
+    for e in effects:
+        ps = family.effect(e)
+        if len(ps) > 3:
+            raise ValueError(f"effect {e} has {len(ps)} parameters; at most three")
+        specs += ps
+    return specs
+
+
+def _to_x(specs: list[Param], values: dict[str, float]) -> np.ndarray:
+    out = []
+    for s in specs:
+        v = min(max(values.get(s.name, s.x0), s.lo), s.hi)
+        out.append(math.log(v) if s.log else v)
+    return np.asarray(out)
+
+
+def _from_x(specs: list[Param], x: np.ndarray) -> dict[str, float]:
+    return {s.name: float(math.exp(v) if s.log else v) for s, v in zip(specs, x, strict=True)}
+
+
+def _bounds(specs: list[Param]) -> tuple[np.ndarray, np.ndarray]:
+    lo = np.array([math.log(s.lo) if s.log else s.lo for s in specs])
+    hi = np.array([math.log(s.hi) if s.log else s.hi for s in specs])
+    return lo, hi
+
+
+def channel_scales(family: Family, preps: list[Any]) -> dict[str, float]:
+    """Whitening scale per channel: the pooled noise SD (floored at 0.1 % of the channel's SD)."""
+    out = {}
+    for c in family.channels:
+        noise = [family.noise(p)[c] for p in preps]
+        spread = float(np.std(np.concatenate([family.measured(p)[c] for p in preps])))
+        out[c] = max(float(np.sqrt(np.mean(np.square(noise)))), 1e-3 * spread, 1e-12)
+    return out
+
+
+def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: dict[str, float] | None = None,
+        scales: dict[str, float] | None = None) -> Fit:
+    """Bounded least squares of the baseline (plus ``effects``) on ``preps``."""
+    specs = _specs(family, effects)
+    scales = scales or channel_scales(family, preps)
+    meas = [family.measured(p) for p in preps]
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        v = _from_x(specs, x)
+        parts = []
+        for p, m in zip(preps, meas, strict=True):
+            pr = family.predict(p, v, effects)
+            for c in family.channels:
+                r = (pr[c] - m[c]) / scales[c]
+                parts.append(np.where(np.isfinite(r), r, 1e3))
+        return np.concatenate(parts)
+
+    x0 = _to_x(specs, start or {})
+    lo, hi = _bounds(specs)
+    sol = least_squares(resid, x0, bounds=(lo, hi), x_scale="jac", max_nfev=200 * (len(specs) + 1))
+    params = _from_x(specs, sol.x)
+    jac = sol.jac
+    n, k = int(sol.fun.size), len(specs)
+    rss = float(sol.fun @ sol.fun)
+    sd: dict[str, float] = {}
+    corr = np.eye(k)
+    cond = math.inf
+    try:
+        s = np.linalg.svd(jac, compute_uv=False)
+        cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
+        cov = np.linalg.pinv(jac.T @ jac) * rss / max(n - k, 1)
+        dsd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            corr = np.nan_to_num(cov / np.outer(dsd, dsd))
+        for i, sp in enumerate(specs):
+            # log-space SDs map to linear ones by the delta method
+            sd[sp.name] = float(dsd[i] * (params[sp.name] if sp.log else 1.0))
+    except np.linalg.LinAlgError:
+        sd = {sp.name: math.nan for sp in specs}
+    at_bound = [sp.name for sp, v, a, b in zip(specs, sol.x, lo, hi, strict=True)
+                if abs(v - a) <= 1e-6 * max(1.0, abs(a)) or abs(v - b) <= 1e-6 * max(1.0, abs(b))]
+    return Fit(effects, params, sd, at_bound, corr, cond, rss, n, k)
+
+
+def _units(n: int, blocks: int) -> list[np.ndarray]:
+    edges = np.linspace(0, n, blocks + 1).astype(int)
+    return [np.arange(a, b) for a, b in itertools.pairwise(edges) if b > a]
+
+
+def score(family: Family, preps: list[Any], f: Fit, blocks: int) -> Scores:
+    """Held-out squared errors per unit (experiment, or ``blocks`` time blocks of each) and channel."""
+    rows_sse, rows_cnt, preds = [], [], []
+    for p in preps:
+        pr = family.predict(p, f.params, f.effects)
+        m = family.measured(p)
+        preds.append(pr)
+        n = len(m[family.channels[0]])
+        for idx in _units(n, blocks):
+            rows_sse.append([float(np.nansum((pr[c][idx] - m[c][idx]) ** 2)) for c in family.channels])
+            rows_cnt.append([int(np.isfinite(pr[c][idx] - m[c][idx]).sum()) for c in family.channels])
+    return Scores(np.asarray(rows_sse), np.asarray(rows_cnt, dtype=float), preds)
+
+
+@dataclass
+class _Norm:
+    spread: np.ndarray  # per channel SD of the held-out measurement
+    floor: np.ndarray  # per channel noise SD
+
+
+def _e(sc: Scores, norm: _Norm, rows: np.ndarray | slice = slice(None)) -> tuple[float, np.ndarray]:
+    sse = sc.sse[rows].sum(axis=0)
+    cnt = np.maximum(sc.cnt[rows].sum(axis=0), 1.0)
+    nrmse = np.sqrt(sse / cnt) / norm.spread
+    return float(nrmse.mean()), nrmse
+
+
+def gap_closure(base: Scores, with_: Scores, norm: _Norm, rows: np.ndarray | slice = slice(None)) -> float:
+    """GC = (E_base − E_with)/(E_base − E_floor) over the held-out ``rows``."""
+    eb, _ = _e(base, norm, rows)
+    ew, _ = _e(with_, norm, rows)
+    ef = float((norm.floor / norm.spread).mean())
+    return (eb - ew) / (eb - ef) if eb - ef > 1e-12 else 0.0
+
+
+def bootstrap_gc(base: Scores, with_: Scores, norm: _Norm, seed: int = 0) -> tuple[float, float]:
+    """5 % and 95 % points of GC over resampled held-out units."""
+    rng = np.random.default_rng(seed)
+    n = base.sse.shape[0]
+    gcs = [gap_closure(base, with_, norm, np.asarray(rng.integers(0, n, n))) for _ in range(N_BOOT)]
+    return float(np.percentile(gcs, 5)), float(np.percentile(gcs, 95))
+
+
+def bootstrap_gc_difference(base: Scores, a: Scores, b: Scores, norm: _Norm, seed: int = 1) -> tuple[float, float]:
+    """5 % and 95 % points of GC(a) − GC(b) on the same resampled held-out units (paired)."""
+    rng = np.random.default_rng(seed)
+    n = base.sse.shape[0]
+    d = []
+    for _ in range(N_BOOT):
+        rows = np.asarray(rng.integers(0, n, n))
+        d.append(gap_closure(base, a, norm, rows) - gap_closure(base, b, norm, rows))
+    return float(np.percentile(d, 5)), float(np.percentile(d, 95))
+
+
+def ljung_box(r: np.ndarray, lags: int = 10) -> tuple[list[float], float]:
+    """Autocorrelation at lags 1…``lags`` and the Ljung–Box p-value (white residuals: p large)."""
+    r = r[np.isfinite(r)]
+    r = r - r.mean()
+    n = r.size
+    den = float(r @ r) or 1.0
+    ac = [float(r[:-k] @ r[k:]) / den for k in range(1, lags + 1)]
+    q = n * (n + 2) * sum(a * a / (n - k) for k, a in enumerate(ac, start=1))
+    return ac, float(stats.chi2.sf(q, lags))
+
+
+def where(family: Family, preps: list[Any], f: Fit) -> list[dict[str, Any]]:
+    """Residuals of fit ``f`` per channel and regime, whiteness and input cross-correlation."""
+    out: list[dict[str, Any]] = []
+    res = {c: [] for c in family.channels}  # type: dict[str, list[np.ndarray]]
+    masks: dict[str, list[np.ndarray]] = {}
+    ins: dict[str, list[np.ndarray]] = {}
+    for p in preps:
+        pr = family.predict(p, f.params, f.effects)
+        m = family.measured(p)
+        for c in family.channels:
+            res[c].append(pr[c] - m[c])
+        for k, v in family.regimes(p).items():
+            masks.setdefault(k, []).append(v)
+        for k, v in family.inputs(p).items():
+            ins.setdefault(k, []).append(v)
+    noise = channel_scales(family, preps)
+    for c in family.channels:
+        r = np.concatenate(res[c])
+        ac, p_white = ljung_box(r)
+        entry: dict[str, Any] = {"channel": c, "rms": float(np.sqrt(np.nanmean(r ** 2))),
+                                 "bias": float(np.nanmean(r)), "noise": noise[c],
+                                 "autocorr_lag1_10": ac, "ljung_box_p": p_white, "regimes": {}, "input_xcorr": {}}
+        for k, ms in masks.items():
+            mk = np.concatenate(ms)
+            if mk.sum() >= 5:
+                entry["regimes"][k] = {"rms": float(np.sqrt(np.nanmean(r[mk] ** 2))), "bias": float(np.nanmean(r[mk])),
+                                       "n": int(mk.sum()), "share": float(mk.mean())}
+        for k, vs in ins.items():
+            u = np.concatenate(vs)
+            if np.std(u) > 0 and np.nanstd(r) > 0:
+                du = (u - u.mean()) / u.std()
+                rr = (r - np.nanmean(r)) / np.nanstd(r)
+                lags = range(0, min(50, r.size // 4))
+                xc = [float(np.nanmean(du[: r.size - k] * rr[k:])) for k in lags]
+                j = int(np.argmax(np.abs(xc)))
+                entry["input_xcorr"][k] = {"max_abs": abs(xc[j]), "lag_samples": j,
+                                           "significant": abs(xc[j]) > 3.0 / math.sqrt(r.size)}
+        out.append(entry)
+    return out
+
+
+@dataclass
+class Candidate:
+    """How one candidate effect did."""
+
+    effect: str
+    fit: Fit
+    scores: Scores
+    gap_closure: float
+    ci: tuple[float, float]
+    delta_bic: float
+    nrmse: dict[str, float]
+    improvement: dict[str, float]
+    significant: bool
+    relevant: bool
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON view."""
+        return {"effect": self.effect, "gap_closure": self.gap_closure,
+                "params_at_bound": [n for n in self.fit.at_bound if "." in n], "gap_closure_ci90": list(self.ci),
+                "delta_bic": self.delta_bic, "significant": self.significant, "relevant": self.relevant,
+                "nrmse": self.nrmse, "rms_improvement": self.improvement,
+                "params": {k: v for k, v in self.fit.params.items() if "." in k},
+                "params_sd": {k: v for k, v in self.fit.sd.items() if "." in k},
+                "baseline_params": {k: v for k, v in self.fit.params.items() if "." not in k}}
+
+
+def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_sc: Scores, effects: tuple[str, ...],
+              norm: _Norm, blocks: int, scales: dict[str, float]) -> Candidate:
+    f = fit(family, calib, effects, start=ref.params, scales=scales)
+    sc = score(family, held, f, blocks)
+    gc = gap_closure(ref_sc, sc, norm)
+    ci = bootstrap_gc(ref_sc, sc, norm)
+    _, nr = _e(sc, norm)
+    rms_ref = np.sqrt(ref_sc.sse.sum(0) / np.maximum(ref_sc.cnt.sum(0), 1))
+    rms_new = np.sqrt(sc.sse.sum(0) / np.maximum(sc.cnt.sum(0), 1))
+    imp = {c: float(a - b) for c, a, b in zip(family.channels, rms_ref, rms_new, strict=True)}
+    relevant = any(imp[c] > family.relevance.get(c, 0.0) for c in family.channels)
+    dbic = ref.bic - f.bic
+    sig = dbic > BIC_STRONG and ci[0] > 0.0 and gc >= GC_MIN and relevant
+    return Candidate(effects[-1], f, sc, gc, ci, dbic, dict(zip(family.channels, map(float, nr), strict=True)),
+                     imp, sig, relevant)
+
+
+def _rank_key(c: Candidate) -> tuple[bool, bool, float]:
+    """Significant first; then an effect whose own parameters sit inside their physical
+    bounds before one pinned on a bound (pinned, it is mimicking a shape it cannot make);
+    then by gap closure."""
+    pinned = any(n.startswith(c.effect + ".") for n in c.fit.at_bound)
+    return c.significant, not pinned, c.gap_closure
+
+
+def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
+             candidates: Sequence[str] | None = None, protocol: dict[str, list[str]] | None = None,
+             blocks: int | None = None) -> dict[str, Any]:
+    """The full diagnosis; returns the report (JSON-able).
+
+    Args:
+        family: The rig family.
+        calib_exps: Experiments to fit on.
+        held_exps: Experiments withheld from every fit, scored only.
+        candidates: Effects to try (default: the family's).
+        protocol: Effect → experiments that make it visible (for the
+            separating-experiment advice).
+        blocks: Time blocks per held-out experiment for the bootstrap
+            (default 1 when ≥ 4 experiments are held out, else 8).
+    """
+    if not calib_exps or not held_exps:
+        raise ValueError("need at least one calibration and one held-out experiment")
+    cands = list(candidates or family.candidates)
+    unknown = [c for c in cands if c not in family.candidates]
+    if unknown:
+        raise ValueError(f"the {family.name} family has no candidate {', '.join(unknown)}; "
+                         f"known: {', '.join(family.candidates)}")
+    calib = [family.prepare(e) for e in calib_exps]
+    held = [family.prepare(e) for e in held_exps]
+    blocks = blocks or (1 if len(held) >= 4 else 8)
+    scales = channel_scales(family, calib)
+    held_meas = [family.measured(p) for p in held]
+    spread = np.array([float(np.std(np.concatenate([m[c] for m in held_meas]))) or 1.0 for c in family.channels])
+    floor = np.array([float(np.sqrt(np.mean([family.noise(p)[c] ** 2 for p in held]))) for c in family.channels])
+    norm = _Norm(spread, floor)
+
+    base = fit(family, calib, (), scales=scales)
+    base_sc = score(family, held, base, blocks)
+    e_base, nr_base = _e(base_sc, norm)
+    e_floor = float((floor / spread).mean())
+
+    singles = [_evaluate(family, calib, held, base, base_sc, (c,), norm, blocks, scales) for c in cands]
+    singles.sort(key=_rank_key, reverse=True)
+
+    selected: list[Candidate] = []
+    ref, ref_sc = base, base_sc
+    pool = list(singles)
+    while pool and len(selected) < MAX_EFFECTS:
+        if selected:
+            prev = tuple(s.effect for s in selected)
+            pool = [_evaluate(family, calib, held, ref, ref_sc, (*prev, c.effect), norm, blocks, scales)
+                    for c in pool]
+            pool.sort(key=_rank_key, reverse=True)
+        best = pool[0]
+        if not best.significant:
+            break
+        selected.append(best)
+        ref, ref_sc = best.fit, best.scores
+        pool = pool[1:]
+
+    confusable: list[str] = []
+    separate: list[dict[str, Any]] = []
+    if selected:
+        win = next(c for c in singles if c.effect == selected[0].effect)
+        for c in singles:
+            if c is win or c.effect in (s.effect for s in selected):
+                continue
+            # confusable: it explains the gap too, and the held-out data cannot say which does more
+            lo, hi = bootstrap_gc_difference(base_sc, win.scores, c.scores, norm)
+            plausible = c.significant or (c.relevant and c.ci[1] >= win.ci[0])
+            if plausible and lo <= 0.0 <= hi:
+                confusable.append(c.effect)
+                if protocol:
+                    only = [x for x in protocol.get(win.effect, []) if x not in protocol.get(c.effect, [])]
+                    separate.append({"effects": [win.effect, c.effect], "experiments": only or
+                                     protocol.get(win.effect, [])})
+    e_final, nr_final = _e(ref_sc, norm)
+    chans = list(family.channels)
+    return {
+        "family": family.name,
+        "experiments": {"calibration": [getattr(e, "name", "?") for e in calib_exps],
+                        "held_out": [getattr(e, "name", "?") for e in held_exps]},
+        "baseline": {"nrmse": dict(zip(chans, map(float, nr_base), strict=True)), "e": e_base,
+                     "identifiability": base.identifiability()},
+        "noise_floor": {"nrmse": dict(zip(chans, map(float, floor / spread), strict=True)), "e": e_floor},
+        "where": where(family, held, base),
+        "ranking": [c.as_dict() for c in singles],
+        "combination": [c.as_dict() for c in selected],
+        "verdict": {"effects": [c.effect for c in selected], "confusable_with": confusable,
+                    "separating_experiments": separate,
+                    "summary": ("no significant effect: the baseline is within the noise or no candidate "
+                                "explains what remains") if not selected else
+                               f"{' + '.join(c.effect for c in selected)}"},
+        "how_far": {"before": dict(zip(chans, map(float, nr_base), strict=True)),
+                    "after": dict(zip(chans, map(float, nr_final), strict=True)),
+                    "e_before": e_base, "e_after": e_final, "e_floor": e_floor,
+                    "unexplained_share": (e_final - e_floor) / (e_base - e_floor) if e_base - e_floor > 1e-12
+                    else 0.0},
+    }

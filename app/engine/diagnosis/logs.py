@@ -1,0 +1,239 @@
+"""Experiment logs for the gap diagnosis: the station's fixed format, its checks, and adapters.
+
+The station's format (issue 6) is a pair ``NAME.csv`` + ``NAME.json``. The
+CSV header is exactly :data:`~app.engine.sim.LOG_COLUMNS`; the JSON holds at
+least :data:`REQUIRED_META`. :func:`read_log` refuses a malformed log with a
+:class:`LogFormatError` that names the problem (missing column, a NaN and
+where, time going backwards, a channel whose magnitude says it was written
+in the wrong unit).
+
+Data from elsewhere enters through adapters that build the same
+:class:`Experiment` with the channels they have: :func:`read_chamber_leak`
+(closed-chamber pressure decays, ``refdata/chamber_leak``) and
+:func:`read_emps` (the EMPS electro-mechanical drive, ``refdata/emps``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.engine.sim import LOG_COLUMNS
+
+REQUIRED_META: tuple[str, ...] = ("rig", "sample_rate_hz", "p_atm_bar", "working_pressure_bar", "experiment",
+                                  "human")
+INPUTS: tuple[str, ...] = ("z_a", "z_b", "u_a", "u_b")
+MEASURED: tuple[str, ...] = ("p_a", "p_b", "p_s", "theta", "omega", "torque")
+
+# plausible magnitudes in the log's units; a channel far outside was written in another unit
+_RANGES: dict[str, tuple[float, float, str]] = {
+    "z_a": (-0.5, 10.5, "V"), "z_b": (-0.5, 10.5, "V"), "u_a": (-0.5, 10.5, "V"), "u_b": (-0.5, 10.5, "V"),
+    "p_a": (0.2, 12.0, "bar abs"), "p_b": (0.2, 12.0, "bar abs"), "p_s": (0.2, 12.0, "bar abs"),
+    "theta": (-2 * math.pi, 2 * math.pi, "rad"), "omega": (-60.0, 60.0, "rad/s"), "torque": (-60.0, 60.0, "N·m"),
+}
+_LIKELY: dict[str, list[tuple[float, str]]] = {
+    "bar abs": [(1e5, "Pa"), (1e2, "kPa"), (14.5, "psi"), (1e-1, "MPa")],
+    "rad": [(180 / math.pi, "degrees")],
+    "rad/s": [(180 / math.pi, "deg/s"), (60 / (2 * math.pi), "rpm")],
+    "N·m": [(1e3, "N·mm")],
+    "V": [(1e3, "mV")],
+}
+
+
+class LogFormatError(ValueError):
+    """A log that cannot be used, with what is wrong and where."""
+
+
+@dataclass
+class Experiment:
+    """One experiment: time, the commands that drove it, what was measured, and how.
+
+    Attributes:
+        name: Log name (file stem).
+        t: Sample times from 0 [s].
+        inputs: Commands [V] by name (``z_a``, ``z_b``, ``u_a``, ``u_b``;
+            adapters may have others).
+        channels: Measured channels by name in the log's units.
+        meta: The JSON metadata.
+    """
+
+    name: str
+    t: np.ndarray
+    inputs: dict[str, np.ndarray] = field(default_factory=dict)
+    channels: dict[str, np.ndarray] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def dt(self) -> float:
+        """Median sample period [s]."""
+        return float(np.median(np.diff(self.t)))
+
+    @property
+    def duration(self) -> float:
+        """Length [s]."""
+        return float(self.t[-1] - self.t[0])
+
+
+def check_frame(name: str, columns: list[str], data: np.ndarray, meta: dict[str, Any]) -> None:
+    """Refuse a log whose columns, values or metadata are unusable.
+
+    Raises:
+        LogFormatError: Naming the log and the first problem found.
+    """
+    if list(columns) != list(LOG_COLUMNS):
+        missing = [c for c in LOG_COLUMNS if c not in columns]
+        extra = [c for c in columns if c not in LOG_COLUMNS]
+        what = (f"missing column(s) {', '.join(missing)}" if missing else
+                f"unknown column(s) {', '.join(extra)}" if extra else "columns in the wrong order")
+        raise LogFormatError(f"{name}: {what}; the header must be exactly {','.join(LOG_COLUMNS)}")
+    missing = [k for k in REQUIRED_META if k not in meta]
+    if missing:
+        raise LogFormatError(f"{name}.json: missing key(s) {', '.join(missing)}")
+    if meta["rig"] not in ("rotary", "linear"):
+        raise LogFormatError(f"{name}.json: rig = {meta['rig']!r} must be 'rotary' or 'linear'")
+    for key, lo, hi in (("sample_rate_hz", 1.0, 1e5), ("p_atm_bar", 0.5, 1.2), ("working_pressure_bar", 1.0, 8.0)):
+        v = meta[key]
+        if isinstance(v, bool) or not isinstance(v, int | float) or not lo <= float(v) <= hi:
+            raise LogFormatError(f"{name}.json: {key} = {v!r} must be a number in {lo:g}–{hi:g}")
+    if not isinstance(meta["human"], bool):
+        raise LogFormatError(f"{name}.json: human = {meta['human']!r} must be true or false")
+    if not isinstance(meta["experiment"], str):
+        raise LogFormatError(f"{name}.json: experiment must be a string")
+    if data.ndim != 2 or data.shape[0] < 10:
+        raise LogFormatError(f"{name}: needs at least 10 rows, has {data.shape[0] if data.ndim == 2 else 0}")
+    bad = ~np.isfinite(data)
+    if bad.any():
+        r, c = (int(v) for v in np.argwhere(bad)[0])
+        raise LogFormatError(f"{name}: row {r + 1}, column {LOG_COLUMNS[c]} is {data[r, c]} (NaN or infinite)")
+    dt = np.diff(data[:, 0])
+    if (dt <= 0).any():
+        i = int(np.argmax(dt <= 0)) + 1
+        raise LogFormatError(f"{name}: time is not increasing at row {i + 1} (t = {data[i, 0]:g} s after "
+                             f"{data[i - 1, 0]:g} s)")
+    rate = 1.0 / float(np.median(dt))
+    if abs(rate - float(meta["sample_rate_hz"])) > 0.05 * float(meta["sample_rate_hz"]):
+        raise LogFormatError(f"{name}: samples come at {rate:.4g} Hz but the metadata says "
+                             f"sample_rate_hz = {meta['sample_rate_hz']}; is t in seconds?")
+    for j, col in enumerate(LOG_COLUMNS[1:], start=1):
+        lo, hi, unit = _RANGES[col]
+        v = data[:, j]
+        med = float(np.median(np.abs(v)))
+        if v.min() >= lo and v.max() <= hi:
+            continue
+        guess = next((u for f, u in _LIKELY.get(unit, []) if med > hi and 0.05 * hi <= med / f <= hi), None)
+        hint = f" — looks like {guess}" if guess else ""
+        raise LogFormatError(f"{name}: column {col} spans {v.min():.4g} … {v.max():.4g}, outside the plausible "
+                             f"{lo:g} … {hi:g} {unit}{hint}; the format wants {unit}")
+
+
+def read_log(path: str | Path) -> Experiment:
+    """Read and check one ``NAME.csv`` + ``NAME.json`` pair (give either file or the stem)."""
+    p = Path(path)
+    stem = p.with_suffix("") if p.suffix in (".csv", ".json") else p
+    csv_path, json_path = stem.with_suffix(".csv"), stem.with_suffix(".json")
+    name = stem.name
+    if not csv_path.is_file():
+        raise LogFormatError(f"{name}: {csv_path} does not exist")
+    if not json_path.is_file():
+        raise LogFormatError(f"{name}: {json_path} does not exist (every log is a .csv + .json pair)")
+    try:
+        meta = json.loads(json_path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise LogFormatError(f"{name}.json: not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise LogFormatError(f"{name}.json: must hold an object")
+    with open(csv_path, encoding="utf-8") as fh:
+        header = fh.readline().strip().split(",")
+        try:
+            data = np.loadtxt(fh, delimiter=",", ndmin=2)
+        except ValueError as exc:
+            raise LogFormatError(f"{name}: a row is not {len(header)} numbers ({exc})") from None
+    if data.size and data.shape[1] != len(header):
+        raise LogFormatError(f"{name}: rows have {data.shape[1]} values, the header {len(header)}")
+    check_frame(name, header, data, meta)
+    t = data[:, 0] - data[0, 0]
+    cols = {c: data[:, i] for i, c in enumerate(LOG_COLUMNS)}
+    return Experiment(name, t, {c: cols[c] for c in INPUTS}, {c: cols[c] for c in MEASURED}, meta)
+
+
+def read_logdir(directory: str | Path) -> list[Experiment]:
+    """Every log pair in ``directory`` (sorted by name); refuses the first bad one."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise LogFormatError(f"{d}: not a directory")
+    stems = sorted({p.with_suffix("") for p in d.glob("*.csv")})
+    if not stems:
+        raise LogFormatError(f"{d}: no NAME.csv + NAME.json logs")
+    return [read_log(s) for s in stems]
+
+
+def write_log(directory: str | Path, name: str, data: np.ndarray, meta: dict[str, Any]) -> Path:
+    """Write an (n, 11) array in the fixed format (checked first); returns the CSV path."""
+    from app.engine.runlog import RunLogWriter
+
+    check_frame(name, list(LOG_COLUMNS), np.asarray(data, dtype=float), meta)
+    w = RunLogWriter(directory, name, meta)
+    w.append_many(np.asarray(data, dtype=float))
+    w.close("complete")
+    return w.csv_path
+
+
+# --------------------------------------------------------------------------- adapters
+
+
+def read_chamber_leak(path: str | Path) -> Experiment:
+    """A closed-chamber decay of ``refdata/chamber_leak`` (';'-separated, 10 Hz).
+
+    Columns: t [ms, '.' as thousands separator], p [V], p [bar gauge]. The
+    experiment holds one channel, ``p`` [bar abs] (gauge + 1.01325), and no
+    inputs: the chamber is closed.
+    """
+    p = Path(path)
+    t_ms, bar = [], []
+    for i, line in enumerate(p.read_text(encoding="utf-8").splitlines()):
+        if not line.strip():
+            continue
+        parts = line.strip().split(";")
+        if len(parts) != 3:
+            raise LogFormatError(f"{p.name}: line {i + 1} has {len(parts)} fields, expected 3 (t;p_V;p_bar)")
+        try:
+            t_ms.append(float(parts[0].replace(".", "")) / 1000.0)  # '151.303.000' → 151303.000 ms
+            bar.append(float(parts[2]))
+        except ValueError:
+            raise LogFormatError(f"{p.name}: line {i + 1} is not numeric: {line!r}") from None
+    t = np.asarray(t_ms) / 1000.0
+    if t.size < 10 or np.any(np.diff(t) <= 0):
+        raise LogFormatError(f"{p.name}: time must increase over at least 10 samples")
+    return Experiment(p.stem, t - t[0], {}, {"p": np.asarray(bar) + 1.01325},
+                      {"rig": "chamber", "sample_rate_hz": 1.0 / float(np.median(np.diff(t))),
+                       "p_atm_bar": 1.01325, "experiment": "closed_chamber_decay", "human": False,
+                       "source": str(p)})
+
+
+def read_emps(path: str | Path) -> Experiment:
+    """A run of the EMPS drive (``refdata/emps``, 1 kHz; Janot, Gautier, Brunot 2019).
+
+    Channels: ``q`` motor position [m] and ``force`` = vir·gtau [N]; input
+    ``q_ref`` [m].
+    """
+    from scipy.io import loadmat
+
+    p = Path(path)
+    try:
+        d = loadmat(p)
+    except (OSError, ValueError) as exc:
+        raise LogFormatError(f"{p.name}: not a MATLAB file ({exc})") from None
+    missing = [k for k in ("t", "qm", "qg", "vir", "gtau") if k not in d]
+    if missing:
+        raise LogFormatError(f"{p.name}: lacks {', '.join(missing)}")
+    t = np.asarray(d["t"], dtype=float).ravel()
+    force = (np.asarray(d["vir"], dtype=float) * float(np.asarray(d["gtau"]).ravel()[0])).ravel()
+    return Experiment(p.stem, t - t[0], {"q_ref": np.asarray(d["qg"], dtype=float).ravel()},
+                      {"q": np.asarray(d["qm"], dtype=float).ravel(), "force": force},
+                      {"rig": "emps", "sample_rate_hz": 1.0 / float(np.median(np.diff(t))),
+                       "experiment": "emps", "human": False, "source": str(p)})
