@@ -4,12 +4,17 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
 from app.engine.params import DCVParams, PlantParams
+
+REFDATA = next((p for p in (Path(__file__).resolve().parents[2] / "shared" / "refdata", Path("/work/shared/refdata"))
+                if p.is_dir()), Path("/work/shared/refdata"))
+"""refdata/ next to the repository in a work tree; at its fixed path in a fresh clone elsewhere."""
 
 
 @pytest.fixture(scope="session")

@@ -20,10 +20,8 @@ from app.engine.diagnosis.logs import (
     write_log,
 )
 from app.engine.sim import LOG_COLUMNS
+from tests.conftest import REFDATA as REF
 
-# next to the repository in a work tree; at its fixed path in a fresh clone elsewhere
-REF = next((p for p in (Path(__file__).resolve().parents[2] / "shared" / "refdata", Path("/work/shared/refdata"))
-            if p.is_dir()), Path("/work/shared/refdata"))
 META = {"rig": "rotary", "sample_rate_hz": 200.0, "p_atm_bar": 1.013, "working_pressure_bar": 3.0,
         "experiment": "hold", "human": False}
 

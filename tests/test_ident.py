@@ -30,10 +30,7 @@ from app.engine.ident.runner import (
     simulate,
 )
 from app.engine.params import DCVParams, ParameterError, PlantParams
-
-REFDATA = next((p for p in (Path(__file__).resolve().parents[2] / "shared" / "refdata", Path("/work/shared/refdata"))
-                if p.is_dir()), Path("/work/shared/refdata"))
-
+from tests.conftest import REFDATA
 
 # ----------------------------------------------------------------- GUI rules (Appendix 1–2, SPEC §6)
 

@@ -123,14 +123,15 @@ def estimate_dcv(req: DCVIdentRequest, station: StationDep) -> Started:
     from app.engine.ident.dcv import CPRProcedure, DCVFlowEstimator, DCVInputs, check_fittable
 
     station.require("estimate", "cpr")
+    from app.engine.ident.runner import cpr_volume_cm3
+
     volume = req.chamber_volume_cm3
     if volume is None:
         params = getattr(station.backend, "params", None)
-        cyl = getattr(params, "linear", None)
-        if cyl is None:
+        if params is None or getattr(params, "linear", None) is None:
             raise ParameterError("chamber_volume_cm3: give chamber a's volume with the cylinder extended "
                                  "(the connected backend does not know it)")
-        volume = (cyl.area_a * cyl.stroke + cyl.dead_volume_a) * 1e6
+        volume = cpr_volume_cm3(params)
     inputs = DCVInputs(volume, tuple(req.ps_bar), tuple(req.u_fill), tuple(req.u_exh), req.band_fill,
                        req.band_exh, req.temperature_k, req.polytropic_n)
     check_fittable(inputs, req.fit_ps_bar)

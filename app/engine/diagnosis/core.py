@@ -38,7 +38,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -160,12 +160,10 @@ class Scores:
     Attributes:
         sse: Per held-out unit (experiment or block), per channel: Σ residual².
         cnt: Per unit, per channel: samples.
-        pred: Predictions per prepared experiment.
     """
 
     sse: np.ndarray
     cnt: np.ndarray
-    pred: list[dict[str, np.ndarray]] = field(default_factory=list)
 
 
 def white_noise_sd(x: np.ndarray) -> float:
@@ -276,16 +274,15 @@ def _units(n: int, blocks: int) -> list[np.ndarray]:
 
 def score(family: Family, preps: list[Any], f: Fit, blocks: int) -> Scores:
     """Held-out squared errors per unit (experiment, or ``blocks`` time blocks of each) and channel."""
-    rows_sse, rows_cnt, preds = [], [], []
+    rows_sse, rows_cnt = [], []
     for p in preps:
         pr = family.predict(p, f.params, f.effects)
         m = family.measured(p)
-        preds.append(pr)
         n = len(m[family.channels[0]])
         for idx in _units(n, blocks):
             rows_sse.append([float(np.nansum((pr[c][idx] - m[c][idx]) ** 2)) for c in family.channels])
             rows_cnt.append([int(np.isfinite(pr[c][idx] - m[c][idx]).sum()) for c in family.channels])
-    return Scores(np.asarray(rows_sse), np.asarray(rows_cnt, dtype=float), preds)
+    return Scores(np.asarray(rows_sse), np.asarray(rows_cnt, dtype=float))
 
 
 @dataclass

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 from scipy.integrate import solve_ivp
@@ -217,10 +216,3 @@ class DriveFamily:
             f = f + x["sensor_bias.force"]
         return {"force": f}
 
-
-def chamber_time_constant(report: dict[str, Any]) -> float | None:
-    """The fitted leak time constant of a chamber report, if the leak was fitted [s]."""
-    for c in report["ranking"]:
-        if c["effect"] == "external_leakage":
-            return float(c["params"]["external_leakage.tau"])
-    return None

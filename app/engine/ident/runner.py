@@ -101,15 +101,19 @@ def identify_linear_sim(cylinder: str, ns: int, nd: int, seed: int = 0, params: 
 DCV_RATE_HZ = 200.0  # the linear rig's rate; the thesis validated at 100 Hz (0.01 s samples)
 
 
+def cpr_volume_cm3(params: PlantParams) -> float:
+    """Chamber a's volume with the simulated cylinder fully extended, dead volume included [cm³]."""
+    c = params.linear
+    if c is None:
+        raise ValueError("the CPR set-up needs the linear rig (PlantParams.linear_rig)")
+    return (c.area_a * c.stroke + c.dead_volume_a) * 1e6
+
+
 def dcv_inputs_for(params: PlantParams, **kw: Any) -> Any:
     """CPR inputs matching the simulated constant-volume chamber (cylinder fully extended)."""
     from app.engine.ident.dcv import DCVInputs
 
-    c = params.linear
-    if c is None:
-        raise ValueError("the CPR set-up needs the linear rig (PlantParams.linear_rig)")
-    return DCVInputs(chamber_volume_cm3=(c.area_a * c.stroke + c.dead_volume_a) * 1e6,
-                     temperature_k=params.t_atm, **kw)
+    return DCVInputs(chamber_volume_cm3=cpr_volume_cm3(params), temperature_k=params.t_atm, **kw)
 
 
 def identify_dcv_sim(model: str = "new", seed: int = 0, params: PlantParams | None = None,
