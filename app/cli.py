@@ -319,6 +319,28 @@ def _diagnose(args: argparse.Namespace) -> int:
     return 0
 
 
+def _protocol(args: argparse.Namespace) -> int:
+    """Run the diagnosis protocol on the simulated rig and write its logs (issue 6 §6)."""
+    from app.engine.diagnosis.protocol import DESCRIPTION, VISIBLE, run_protocol
+    from app.engine.diagnosis.suite import MAGNITUDES, perturbed
+    from app.engine.params import PlantParams
+
+    rig = perturbed(args.seed, args.param_error) if args.param_error > 0 else PlantParams()
+    for spec in args.effect or []:
+        name, _, mag = spec.partition(":")
+        if name not in MAGNITUDES:
+            raise ValueError(f"--effect {spec}: unknown effect {name!r}; known: {', '.join(MAGNITUDES)}")
+        if mag not in ("", "1", "2"):
+            raise ValueError(f"--effect {spec}: magnitude must be 1 (smaller) or 2 (larger)")
+        rig = rig.with_effects(**{name: MAGNITUDES[name][int(mag or 1) - 1]})
+    exps = run_protocol(rig, seed=args.seed, scale=args.scale, outdir=args.outdir)
+    for kind in VISIBLE:
+        print(f"{kind:15s} {DESCRIPTION[kind]}; shows {', '.join(VISIBLE[kind])}")
+    print(f"{len(exps)} logs written to {args.outdir} (effects on the simulated rig: "
+          f"{', '.join(rig.effects.active()) or 'none'})")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``cwrr`` and ``python -m app``."""
     ap = argparse.ArgumentParser(prog="cwrr", description="CWRR lab station")
@@ -378,6 +400,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="experiment names to withhold from fitting (default: the last third by name; "
                         "one experiment: its last 40 %%)")
     g.set_defaults(fn=_diagnose)
+    q = sub.add_parser("protocol", help="run the diagnosis protocol on the simulated rig and write its logs")
+    q.add_argument("outdir", help="directory for the logs (NAME.csv + NAME.json)")
+    q.add_argument("--effect", nargs="*", default=None,
+                   help="effects to switch on in the simulated rig, NAME or NAME:1|2 (magnitude)")
+    q.add_argument("--param-error", type=float, default=0.0,
+                   help="random error on the recalibratable nominal parameters, e.g. 0.2 for ±20 %%")
+    q.add_argument("--scale", type=float, default=1.0, help="duration factor (1: ≈ 70 s per repetition)")
+    q.add_argument("--seed", type=int, default=0)
+    q.set_defaults(fn=_protocol)
     v = sub.add_parser("serve", help="start the lab station server on the simulated plant")
     v.add_argument("--host", default="127.0.0.1")
     v.add_argument("--port", type=int, default=8000)

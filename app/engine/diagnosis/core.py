@@ -38,7 +38,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -62,6 +62,9 @@ class Param:
         hi: Upper bound.
         unit: Unit.
         log: Fit in log space (spans decades; needs ``lo > 0``).
+        off: For an effect parameter, the value at which the effect (nearly)
+            vanishes, so that a fit started there is never worse than the
+            model without it (``None``: ``x0``).
     """
 
     name: str
@@ -70,6 +73,7 @@ class Param:
     hi: float
     unit: str = ""
     log: bool = False
+    off: float | None = None
 
 
 class Family(Protocol):
@@ -127,6 +131,8 @@ class Fit:
         rss: Whitened residual sum of squares on the calibration data.
         n: Residuals.
         k: Parameters.
+        free: Parameters this fit moved (row order of ``corr``; the others were
+            held at the reference fit's values, their SDs NaN).
     """
 
     effects: tuple[str, ...]
@@ -138,6 +144,7 @@ class Fit:
     rss: float
     n: int
     k: int
+    free: list[str] = field(default_factory=list)
 
     @property
     def bic(self) -> float:
@@ -146,7 +153,7 @@ class Fit:
 
     def identifiability(self) -> dict[str, Any]:
         """JSON view: SDs, bounds hit, strongly correlated pairs (|r| > 0.95), condition number."""
-        names = list(self.params)
+        names = self.free or list(self.params)
         pairs = [[names[i], names[j], float(self.corr[i, j])] for i in range(len(names))
                  for j in range(i + 1, len(names)) if abs(self.corr[i, j]) > 0.95]
         return {"params": self.params, "sd": self.sd, "at_bound": self.at_bound, "condition_number": self.cond,
@@ -224,14 +231,26 @@ def channel_scales(family: Family, preps: list[Any]) -> dict[str, float]:
 
 
 def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: dict[str, float] | None = None,
-        scales: dict[str, float] | None = None) -> Fit:
-    """Bounded least squares of the baseline (plus ``effects``) on ``preps``."""
-    specs = _specs(family, effects)
+        scales: dict[str, float] | None = None, starts: list[dict[str, float]] | None = None) -> Fit:
+    """Bounded least squares of the baseline (plus ``effects``) on ``preps``.
+
+    ``starts`` (several starting points; the best fit wins) overrides ``start``.
+    """
+    all_specs = _specs(family, effects)
+    first = (starts or [start or {}])[0]
+    # parameters the family says cannot interact with these effects stay where the
+    # reference fit put them (e.g. flow capacities when only the torque balance changes)
+    frozen_names = getattr(family, "frozen", lambda _e: set())(effects)
+    fixed = {s.name: min(max(first.get(s.name, s.x0), s.lo), s.hi) for s in all_specs if s.name in frozen_names}
+    specs = [s for s in all_specs if s.name not in fixed]
     scales = scales or channel_scales(family, preps)
     meas = [family.measured(p) for p in preps]
+    prefetch = getattr(family, "prefetch", None)
 
     def resid(x: np.ndarray) -> np.ndarray:
-        v = _from_x(specs, x)
+        v = fixed | _from_x(specs, x)
+        if prefetch is not None:
+            prefetch(preps, [v], effects)
         parts = []
         for p, m in zip(preps, meas, strict=True):
             pr = family.predict(p, v, effects)
@@ -240,15 +259,23 @@ def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: 
                 parts.append(np.where(np.isfinite(r), r, 1e3))
         return np.concatenate(parts)
 
-    x0 = _to_x(specs, start or {})
     lo, hi = _bounds(specs)
-    sol = least_squares(resid, x0, bounds=(lo, hi), x_scale="jac", max_nfev=200 * (len(specs) + 1))
-    params = _from_x(specs, sol.x)
+    # a replayed simulator with switching (valve hysteresis, stiction) is piecewise smooth:
+    # difference steps of the family's size see through the jumps
+    diff_step = getattr(family, "diff_step", None)
+    max_nfev = getattr(family, "max_nfev", 200 * (len(specs) + 1))
+    # descend from the best of the starting points (one descent: each costs many replays)
+    xs = [_to_x(specs, st) for st in starts or [start or {}]]
+    x_best = xs[0] if len(xs) == 1 else min(xs, key=lambda x: float(np.sum(resid(x) ** 2)))
+    sol = least_squares(resid, x_best, bounds=(lo, hi), x_scale="jac", max_nfev=max_nfev, diff_step=diff_step)
+    params = fixed | _from_x(specs, sol.x)
+    params = {sp.name: params[sp.name] for sp in all_specs}
     jac = sol.jac
-    n, k = int(sol.fun.size), len(specs)
+    # k counts the frozen parameters too: they were fitted on the same data by the reference
+    n, k = int(sol.fun.size), len(all_specs)
     rss = float(sol.fun @ sol.fun)
-    sd: dict[str, float] = {}
-    corr = np.eye(k)
+    sd: dict[str, float] = {name: math.nan for name in fixed}
+    corr = np.eye(len(specs))
     cond = math.inf
     try:
         s = np.linalg.svd(jac, compute_uv=False)
@@ -261,10 +288,10 @@ def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: 
             # log-space SDs map to linear ones by the delta method
             sd[sp.name] = float(dsd[i] * (params[sp.name] if sp.log else 1.0))
     except np.linalg.LinAlgError:
-        sd = {sp.name: math.nan for sp in specs}
+        sd = {sp.name: math.nan for sp in all_specs}
     at_bound = [sp.name for sp, v, a, b in zip(specs, sol.x, lo, hi, strict=True)
                 if abs(v - a) <= 1e-6 * max(1.0, abs(a)) or abs(v - b) <= 1e-6 * max(1.0, abs(b))]
-    return Fit(effects, params, sd, at_bound, corr, cond, rss, n, k)
+    return Fit(effects, params, sd, at_bound, corr, cond, rss, n, k, [sp.name for sp in specs])
 
 
 def _units(n: int, blocks: int) -> list[np.ndarray]:
@@ -275,6 +302,9 @@ def _units(n: int, blocks: int) -> list[np.ndarray]:
 def score(family: Family, preps: list[Any], f: Fit, blocks: int) -> Scores:
     """Held-out squared errors per unit (experiment, or ``blocks`` time blocks of each) and channel."""
     rows_sse, rows_cnt = [], []
+    prefetch = getattr(family, "prefetch", None)
+    if prefetch is not None:
+        prefetch(preps, [f.params], f.effects)
     for p in preps:
         pr = family.predict(p, f.params, f.effects)
         m = family.measured(p)
@@ -405,7 +435,15 @@ class Candidate:
 
 def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_sc: Scores, effects: tuple[str, ...],
               norm: _Norm, blocks: int, scales: dict[str, float]) -> Candidate:
-    f = fit(family, calib, effects, start=ref.params, scales=scales)
+    # from the effect switched off (never worse than the reference) and from its typical size
+    new = [p for e in effects for p in family.effect(e) if p.name not in ref.params]
+    off = ref.params | {p.name: p.x0 if p.off is None else p.off for p in new}
+    typ = ref.params | {p.name: p.x0 for p in new}
+    starts = [off, typ] if off != typ else [off]
+    points = int(getattr(family, "grid_points", 0))
+    if points and new:
+        starts.append(_grid_start(family, calib, effects, ref.params, new, points, scales))
+    f = fit(family, calib, effects, scales=scales, starts=starts)
     sc = score(family, held, f, blocks)
     gc = gap_closure(ref_sc, sc, norm)
     ci = bootstrap_gc(ref_sc, sc, norm)
@@ -418,6 +456,38 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     sig = dbic > BIC_STRONG and ci[0] > 0.0 and gc >= GC_MIN and relevant
     return Candidate(effects[-1], f, sc, gc, ci, dbic, dict(zip(family.channels, map(float, nr), strict=True)),
                      imp, sig, relevant)
+
+
+def _grid_start(family: Family, preps: list[Any], effects: tuple[str, ...], ref: dict[str, float],
+                new: list[Param], points: int, scales: dict[str, float]) -> dict[str, float]:
+    """The best point of a coarse grid over the new effect's parameters (the rest at ``ref``).
+
+    A replayed simulator with switching elements has a rough cost surface on
+    which finite-difference descent from one start stalls; a grid over at
+    most three bounded parameters (``points``, ``⌈points/2⌉`` or 3 values per
+    axis) finds the right basin first.
+    """
+    per = {1: points, 2: max(3, (points + 1) // 2)}.get(len(new), 3)
+    axes = []
+    for p in new:
+        g = np.linspace(math.log(p.lo), math.log(p.hi), per) if p.log else np.linspace(p.lo, p.hi, per)
+        axes.append(np.exp(g) if p.log else g)
+    cands = [ref | {p.name: float(v) for p, v in zip(new, combo, strict=True)} for combo in itertools.product(*axes)]
+    prefetch = getattr(family, "prefetch", None)
+    if prefetch is not None:
+        prefetch(preps, cands, effects)
+    meas = [family.measured(p) for p in preps]
+    best, best_cost = cands[0], math.inf
+    for v in cands:
+        cost = 0.0
+        for p, m in zip(preps, meas, strict=True):
+            pr = family.predict(p, v, effects)
+            for c in family.channels:
+                r = (pr[c] - m[c]) / scales[c]
+                cost += float(np.sum(np.where(np.isfinite(r), r, 1e3) ** 2))
+        if cost < best_cost:
+            best, best_cost = v, cost
+    return best
 
 
 def _rank_key(c: Candidate) -> tuple[bool, bool, float]:

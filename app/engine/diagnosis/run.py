@@ -9,20 +9,16 @@ from typing import Any
 from app.engine.diagnosis.core import diagnose
 from app.engine.diagnosis.families import ChamberFamily, DriveFamily, split_time
 from app.engine.diagnosis.logs import Experiment, LogFormatError, read_chamber_leak, read_emps, read_logdir
+from app.engine.diagnosis.protocol import effect_experiments
+from app.engine.diagnosis.rotary import RotaryFamily
 
-PROTOCOL: dict[str, list[str]] = {
-    "inertia": ["slow sine (free handle)", "isotonic workout with reversals"],
-    "vane_leakage": ["hold with the DCVs closed at unequal chamber pressures"],
-    "external_leakage": ["hold with the DCVs closed at equal chamber pressures", "closed-chamber decay"],
-    "heat_transfer": ["PRV steps per chamber (vane locked)", "hold right after a fast fill"],
-    "tube_dynamics": ["PRV steps per chamber (vane locked)", "DCV steps at constant supply"],
-    "presliding_friction": ["friction sweeps through zero speed", "slow sine (free handle)"],
-    "sensor_bias": ["vented rest (all channels at known values)"],
-    "supply_droop": ["simultaneous fills of both chambers (supply flow)", "DCV steps at constant supply"],
-    "valve_dynamics": ["PRV steps per chamber (vane locked)", "DCV steps at constant supply"],
+PROTOCOL: dict[str, list[str]] = effect_experiments() | {
+    # outside the rotary protocol: the refdata adapters' own experiments
+    "external_leakage": [*effect_experiments()["external_leakage"], "closed-chamber decay"],
 }
-"""Diagnosis protocol: the experiments that make each effect visible (used to name the
-experiment that separates two confusable effects)."""
+"""Diagnosis protocol: effect → the experiments that make it visible (the table of
+:data:`~app.engine.diagnosis.protocol.VISIBLE`; used to name the experiment that
+separates two confusable effects)."""
 
 
 def _detect(d: Path) -> str:
@@ -82,6 +78,27 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
             reports[p.stem] = diagnose(ChamberFamily(), [a], [b], protocol=PROTOCOL)
         return {"adapter": "chamber_leak", "reports": reports}
     exps = read_logdir(d)  # refuses malformed logs with the problem named
-    raise LogFormatError(f"{d}: {len(exps)} station logs read and checked, but the replay family for CWRR "
-                         "logs (simulator driven by the logged commands and motion) is not built yet; "
-                         "only the chamber_leak and emps adapters can be diagnosed")
+    linear = [e.name for e in exps if e.meta["rig"] != "rotary"]
+    if linear:
+        raise LogFormatError(f"{d}: {', '.join(linear)} come from the linear rig; the replay family covers "
+                             "the rotary rig (diagnose linear-rig logs in a directory of their own once it does)")
+    calib, held = _split_station(exps, held_out)
+    return diagnose(RotaryFamily(), calib, held, protocol=PROTOCOL) | {"adapter": "station"}
+
+
+def _split_station(exps: list[Experiment], held_out: list[str] | None) -> tuple[list[Experiment], list[Experiment]]:
+    """Hold out whole experiments: the last repetition of every kind that was run more than once.
+
+    A protocol run (:func:`~app.engine.diagnosis.protocol.run_protocol`) repeats
+    every experiment, so each kind is both fitted and scored; logs of kinds
+    run once are only fitted on. Without repetitions, the generic split.
+    """
+    if held_out:
+        return _split(exps, held_out)
+    kinds: dict[str, list[Experiment]] = {}
+    for e in exps:
+        kinds.setdefault(str(e.meta["experiment"]), []).append(e)
+    held = [v[-1] for v in kinds.values() if len(v) > 1]
+    if not held:
+        return _split(exps, None)
+    return [e for e in exps if e not in held], held

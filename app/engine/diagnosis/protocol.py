@@ -1,0 +1,208 @@
+"""The diagnosis protocol: excitation experiments the station runs on the rig or the simulator.
+
+Each experiment is an open-loop command schedule (PRV set points ``z_a``,
+``z_b`` and DCV commands ``u_a``, ``u_b`` in volts, wired as in thesis 3.2.4)
+plus what the user does with the handle. The isotonic workout is the only
+closed-loop one (the Default controller). :data:`VISIBLE` says which effect
+each experiment makes visible; :func:`run_protocol` runs them all on a
+simulated rig and returns experiments in the station's log format (every
+experiment twice, the second repetition at other levels, so that whole
+experiments can be held out).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from app.engine.diagnosis.logs import INPUTS, MEASURED, Experiment, write_log
+from app.engine.human import HumanProgram, isotonic
+from app.engine.params import PlantParams
+from app.engine.sim import LOG_COLUMNS, Simulator, run_workout
+
+RATE_HZ = 200.0
+
+VISIBLE: dict[str, list[str]] = {
+    "prv_steps": ["valve_dynamics", "tube_dynamics", "heat_transfer", "sensor_bias", "supply_droop"],
+    "dcv_steps": ["tube_dynamics", "valve_dynamics", "supply_droop", "heat_transfer"],
+    "hold_closed": ["vane_leakage", "external_leakage", "heat_transfer", "sensor_bias"],
+    "friction_sweep": ["presliding_friction", "inertia", "sensor_bias"],
+    "sine_sweep": ["inertia", "presliding_friction"],
+    "isotonic": ["inertia", "presliding_friction", "valve_dynamics", "supply_droop"],
+}
+"""Experiment → the effects it makes visible (the protocol table, issue 6 §6)."""
+
+DESCRIPTION: dict[str, str] = {
+    "prv_steps": "PRV set-point steps, one chamber at a time, DCVs open, handle held at neutral",
+    "dcv_steps": "DCV steps at constant PRV pressure, handle held at neutral",
+    "hold_closed": "fill the chambers to unequal pressures, then DCVs at 5 V (closed) for a hold",
+    "friction_sweep": "the user moves the handle back and forth at several speeds, chambers at equal pressure",
+    "sine_sweep": "the user rocks the handle at rising frequency (accelerations for the inertia)",
+    "isotonic": "a Default-controller isotonic workout (closed loop)",
+}
+
+
+def effect_experiments() -> dict[str, list[str]]:
+    """Effect → the protocol experiments that make it visible (inverse of :data:`VISIBLE`)."""
+    out: dict[str, list[str]] = {}
+    for exp, effs in VISIBLE.items():
+        for e in effs:
+            out.setdefault(e, []).append(exp)
+    return out
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """An open-loop experiment.
+
+    Attributes:
+        name: Experiment kind (a key of :data:`VISIBLE`).
+        duration: Length [s].
+        commands: t [s] → (z_a, z_b, u_a, u_b) [V].
+        program: What the user does.
+        pw_bar: Chamber pressure at the start [bar abs].
+        human: Whether the user holds the handle.
+    """
+
+    name: str
+    duration: float
+    commands: Callable[[float], tuple[float, float, float, float]]
+    program: HumanProgram
+    pw_bar: float
+    human: bool
+
+
+def _steps(t: float, levels: Sequence[float], every: float) -> float:
+    return float(levels[min(int(t // every), len(levels) - 1)])
+
+
+def schedules(rep: int = 0, scale: float = 1.0) -> list[Schedule]:
+    """The open-loop protocol experiments; ``rep`` varies levels and speeds between repetitions.
+
+    Args:
+        rep: Repetition index (0, 1, …).
+        scale: Duration factor (1 = the full protocol, ≈ 70 s per repetition).
+    """
+    a = 1.0 + 0.15 * rep  # amplitude factor of the repetition
+    hold0 = HumanProgram.hold(0.0, 1.0)
+    out: list[Schedule] = []
+
+    every = 1.5 * scale
+    za = [1.0, 3.0 * a, 1.5, 3.5, 2.0, 2.0, 2.0, 2.0]
+    zb = [2.0, 2.0, 2.0, 2.0, 1.0, 3.0 * a, 1.5, 3.5]
+    out.append(Schedule("prv_steps", every * len(za),
+                        lambda t, e=every: (_steps(t, za, e), _steps(t, zb, e), 0.0, 10.0), hold0, 3.0, True))
+
+    every = 1.2 * scale
+    ua = [0.0, 5.0, 4.2, 5.0, 5.8, 5.0, 0.0, 5.0, 5.0, 5.0]
+    ub = [10.0, 5.0, 5.0, 5.0, 5.0, 5.0, 10.0, 5.8, 4.2, 10.0]
+    zc = 2.0 * a
+    out.append(Schedule("dcv_steps", every * len(ua),
+                        lambda t, e=every: (zc, zc, _steps(t, ua, e), _steps(t, ub, e)), hold0, 3.0, True))
+
+    fill = 2.0 * scale
+    dur = fill + 8.0 * scale
+    zh_a, zh_b = 3.0 * a, 1.0
+
+    def hold_cmd(t: float) -> tuple[float, float, float, float]:
+        return (zh_a, zh_b, 0.0, 10.0) if t < fill else (zh_a, zh_b, 5.0, 5.0)
+
+    out.append(Schedule("hold_closed", dur, hold_cmd, hold0, 2.0, True))
+
+    # the user sweeps ±amp at three speeds, both chambers at equal pressure
+    amp = 0.6 * a
+    speeds = (0.3, 0.8, 1.6)
+    ts, ps = [0.0, 0.5], [0.0, 0.0]
+    t = 0.5
+    for w in speeds:
+        for target in (amp, -amp, 0.0):
+            t += abs(target - ps[-1]) / w
+            ts.append(t)
+            ps.append(target)
+        t += 0.3 * scale
+        ts.append(t)
+        ps.append(0.0)
+    zf = 1.5 * a
+    out.append(Schedule("friction_sweep", t + 0.5, lambda _t: (zf, zf, 0.0, 10.0),
+                        HumanProgram(np.array(ts), np.array(ps)), 2.5, True))
+
+    # rising-frequency rocking (a chirp of the intended angle, breakpoints every 10 ms)
+    dur = 8.0 * scale
+    tt = np.arange(0.0, dur + 1e-9, 0.01)
+    f0, f1 = 0.4, 2.0 + 0.4 * rep
+    phase = 2 * math.pi * (f0 * tt + (f1 - f0) * tt**2 / (2 * dur))
+    th = 0.25 * np.sin(phase) * np.minimum(1.0, tt / 0.5)
+    out.append(Schedule("sine_sweep", dur, lambda _t: (zf, zf, 0.0, 10.0), HumanProgram(tt, th), 2.5, True))
+    return out
+
+
+def run_schedule(params: PlantParams, s: Schedule, seed: int = 0) -> np.ndarray:
+    """Run one open-loop experiment on a simulated rig; returns the (n, 11) log."""
+    from app.engine.physics.plant import initial_state
+
+    dt = 1.0 / RATE_HZ
+    n = int(round(s.duration / dt))
+    sim = Simulator(params, seed=seed, program=s.program, x0=initial_state(params, 0.0, s.pw_bar, s.pw_bar))
+    log = np.empty((n, len(LOG_COLUMNS)))
+    for i in range(n):
+        t = i * dt
+        m = sim.advance_and_measure(t, dt)
+        cmd = s.commands(t)
+        log[i, 0] = t
+        log[i, 1:5] = cmd
+        log[i, 5:] = m  # p_a, p_b, p_s, θ, ω, T_i: the measurement vector's order
+        sim.set_command(*cmd)
+    return log
+
+
+def _experiment(name: str, log: np.ndarray, meta: dict[str, object]) -> Experiment:
+    cols = {c: log[:, i] for i, c in enumerate(LOG_COLUMNS)}
+    return Experiment(name, cols["t"] - cols["t"][0], {c: cols[c] for c in INPUTS},
+                      {c: cols[c] for c in MEASURED}, dict(meta))
+
+
+def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: int = 2, scale: float = 1.0,
+                 kinds: Sequence[str] | None = None, outdir: str | Path | None = None) -> list[Experiment]:
+    """Run the whole protocol on a simulated rig.
+
+    Args:
+        params: The simulated rig (effects included).
+        seed: Sensor-noise seed (each experiment gets its own stream).
+        repetitions: Runs of every experiment (the last one is for holding out).
+        scale: Duration factor.
+        kinds: Experiments to run (default all of :data:`VISIBLE`).
+        outdir: Also write every log there in the station's format.
+
+    Returns:
+        The experiments, named ``KIND-REP`` (e.g. ``hold_closed-2``).
+    """
+    params = params or PlantParams()
+    kinds = list(kinds or VISIBLE)
+    unknown = [k for k in kinds if k not in VISIBLE]
+    if unknown:
+        raise ValueError(f"no protocol experiment {', '.join(unknown)}; known: {', '.join(VISIBLE)}")
+    exps: list[Experiment] = []
+    for rep in range(repetitions):
+        sch = {s.name: s for s in schedules(rep, scale)}
+        for j, kind in enumerate(kinds):
+            sd = seed * 1000 + rep * 100 + j
+            name = f"{kind}-{rep + 1}"
+            if kind == "isotonic":
+                prog = isotonic(+1 if rep % 2 == 0 else -1, speed=0.35 * (1 + 0.3 * rep), repetitions=1,
+                                amplitude=math.radians(50.0))
+                res = run_workout(params, prog, duration=12.0 * scale, rate_hz=RATE_HZ, seed=sd, pw_bar=3.0)
+                log, human, pw = res.log, True, 3.0
+            else:
+                s = sch[kind]
+                log, human, pw = run_schedule(params, s, sd), s.human, s.pw_bar
+            meta = {"rig": "rotary", "sample_rate_hz": RATE_HZ, "p_atm_bar": params.p_atm / 1e5,
+                    "working_pressure_bar": pw, "experiment": kind, "human": human, "repetition": rep + 1,
+                    "protocol": True}
+            exps.append(_experiment(name, log, meta))
+            if outdir is not None:
+                write_log(outdir, name, log, meta)
+    return exps

@@ -1,0 +1,33 @@
+"""The withheld-effect suite (issue 6): nine effects × two magnitudes, plus effect-free rigs.
+
+Each case simulates the diagnosis protocol on a rig with one effect the
+diagnosed model lacks (nominal parameters off by up to ±20 %, sensor noise),
+diagnoses it and records where the true effect ranked. Prints one JSON
+object: the rank-1 rate, the true effects' held-out gap closure, the
+false-positive rate on effect-free rigs, and every case.
+
+Run: ``python bench/withheld.py [--seeds N] [--nulls N]`` inside the project
+environment (≈ 30 s per case on two cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from app.engine.diagnosis.suite import MAGNITUDES, run_case, summarise
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", type=int, default=1, help="parameter-error/noise draws per effect and magnitude")
+    ap.add_argument("--nulls", type=int, default=4, help="effect-free rigs")
+    ap.add_argument("--effects", nargs="*", default=list(MAGNITUDES))
+    a = ap.parse_args()
+    results = []
+    for seed in range(a.seeds):
+        for eff in a.effects:
+            for mag in (0, 1):
+                results.append(run_case(eff, mag, seed=100 + seed))
+    for seed in range(a.nulls):
+        results.append(run_case(None, seed=200 + seed))
+    print(json.dumps(summarise(results), indent=1))

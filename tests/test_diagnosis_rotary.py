@@ -1,0 +1,123 @@
+"""Issue 6 on the CWRR rig: protocol logs, the replay family, withheld effects, the CLI on station logs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.engine.diagnosis.logs import LogFormatError, read_logdir
+from app.engine.diagnosis.protocol import VISIBLE, effect_experiments, run_protocol
+from app.engine.diagnosis.rotary import RotaryFamily
+from app.engine.diagnosis.run import PROTOCOL, _split_station, diagnose_dir
+from app.engine.diagnosis.suite import MAGNITUDES, perturbed, run_case
+from app.engine.params import EFFECT_NAMES, PlantParams
+
+
+@pytest.fixture(scope="module")
+def nominal_logs() -> list:
+    return run_protocol(PlantParams(), seed=4, repetitions=1, scale=0.6)
+
+
+def test_protocol_table_covers_every_effect() -> None:
+    # every candidate is made visible by at least one experiment the station runs (issue 6 §6)
+    assert set(effect_experiments()) == set(EFFECT_NAMES)
+    assert all(PROTOCOL[e] for e in EFFECT_NAMES)
+    assert set(MAGNITUDES) == set(EFFECT_NAMES)
+
+
+def test_protocol_logs_are_in_the_station_format(tmp_path: Path) -> None:
+    run_protocol(PlantParams(), seed=1, repetitions=2, scale=0.3, kinds=["hold_closed", "prv_steps"], outdir=tmp_path)
+    exps = read_logdir(tmp_path)  # the format checks pass
+    assert sorted(e.name for e in exps) == ["hold_closed-1", "hold_closed-2", "prv_steps-1", "prv_steps-2"]
+    calib, held = _split_station(exps, None)
+    # whole experiments are held out: the second repetition of each kind
+    assert sorted(e.name for e in held) == ["hold_closed-2", "prv_steps-2"]
+    assert sorted(e.name for e in calib) == ["hold_closed-1", "prv_steps-1"]
+
+
+def test_replay_of_the_model_that_made_the_logs_is_near_the_floor(nominal_logs: list) -> None:
+    """Replaying a log with the parameters that generated it: the pressures stay within the PRV's
+    rest band (its hysteresis makes the exact chatter history-dependent) and the torque balance
+    closes in steady motion."""
+    fam = RotaryFamily()
+    x = {p.name: p.x0 for p in fam.baseline()}
+    for e in nominal_logs:
+        prep = fam.prepare(e)
+        y, m = fam.predict(prep, x, ()), fam.measured(prep)
+        for c in ("p_a", "p_b"):
+            assert np.sqrt(np.mean((y[c] - m[c]) ** 2)) < 0.03, (e.name, c)
+        steady = prep.regimes["steady motion 0.3–1 rad/s"]
+        if steady.sum() > 50:
+            assert np.sqrt(np.mean((y["torque"] - m["torque"])[steady] ** 2)) < 0.05, e.name
+
+
+def test_replay_sees_an_effect_where_it_acts(nominal_logs: list) -> None:
+    # the same replay with a vane leak switched on departs from the leak-free logs in the hold
+    fam = RotaryFamily()
+    x = {p.name: p.x0 for p in fam.baseline()} | {"vane_leakage.c": 0.06}
+    hold = next(e for e in nominal_logs if e.name.startswith("hold_closed"))
+    prep = fam.prepare(hold)
+    y = fam.predict(prep, x, ("vane_leakage",))
+    gap = np.abs(y["p_a"] - fam.measured(prep)["p_a"])[-200:]
+    assert gap.mean() > 0.05  # bar: a leak across the vane drains the high chamber into the low one
+
+
+def test_perturbed_rig_stays_within_twenty_percent() -> None:
+    p, q = PlantParams(), perturbed(7)
+    assert 0.8 <= q.prv.c_supply / p.prv.c_supply <= 1.2
+    assert 0.8 <= q.vane.dead_volume_a / p.vane.dead_volume_a <= 1.2
+    assert q.prv.c_supply != p.prv.c_supply
+
+
+def test_diagnose_refuses_linear_rig_station_logs(tmp_path: Path) -> None:
+    from app.engine.diagnosis.logs import write_log
+    from app.engine.sim import LOG_COLUMNS
+
+    n = 50
+    data = np.zeros((n, len(LOG_COLUMNS)))
+    data[:, 0] = np.arange(n) / 200.0
+    data[:, 5:8] = 2.0
+    meta = {"rig": "linear", "sample_rate_hz": 200.0, "p_atm_bar": 1.013, "working_pressure_bar": 3.0,
+            "experiment": "x", "human": False}
+    write_log(tmp_path, "lin", data, meta)
+    with pytest.raises(LogFormatError, match="lin come from the linear rig"):
+        diagnose_dir(tmp_path)
+
+
+@pytest.mark.slow
+def test_withheld_sensor_bias_through_the_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """End to end as a researcher would: run the protocol on a rig with offsets on its sensors and
+    ±20 % parameter errors, diagnose the logs, read the report."""
+    from app.cli import main
+
+    logs = tmp_path / "logs"
+    assert main(["protocol", str(logs), "--effect", "sensor_bias:2", "--param-error", "0.2", "--seed", "5"]) == 0
+    assert len(list(logs.glob("*.csv"))) == 2 * len(VISIBLE)
+    out = tmp_path / "report.json"
+    assert main(["diagnose", str(logs), "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert set(r["baseline"]["nrmse"]) == {"p_a", "p_b", "p_s", "torque"}
+    assert r["verdict"]["effects"][:1] == ["sensor_bias"], r["verdict"]
+    top = r["ranking"][0]
+    assert top["effect"] == "sensor_bias" and top["significant"]
+    # the offsets the rig had (MAGNITUDES["sensor_bias"][1]: +0.15 bar, +0.10 bar, −0.3 N·m), recovered
+    truth = MAGNITUDES["sensor_bias"][1]
+    assert top["params"]["sensor_bias.p_a_bar"] == pytest.approx(truth.p_a_bar, abs=0.03)
+    assert top["params"]["sensor_bias.p_b_bar"] == pytest.approx(truth.p_b_bar, abs=0.03)
+    assert top["params"]["sensor_bias.torque_nm"] == pytest.approx(truth.torque_nm, abs=0.06)
+    assert r["how_far"]["e_after"] < r["how_far"]["e_before"]
+    assert {w["channel"] for w in r["where"]} == {"p_a", "p_b", "p_s", "torque"}
+    assert sorted(r["experiments"]["held_out"]) == sorted(f"{k}-2" for k in VISIBLE)
+
+
+@pytest.mark.slow
+def test_withheld_presliding_is_found_and_an_effect_free_rig_is_left_alone() -> None:
+    r = run_case("presliding_friction", 1, seed=11)
+    assert r["verdict"][:1] == ["presliding_friction"], (r["verdict"], r["rank"])
+    p = r["report"]["ranking"][0]["params"]
+    assert p["presliding_friction.sigma0"] == pytest.approx(MAGNITUDES["presliding_friction"][1].sigma0, rel=0.3)
+    null = run_case(None, seed=12)
+    assert null["verdict"] == [], null["report"]["ranking"][0]
