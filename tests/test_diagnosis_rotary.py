@@ -94,7 +94,8 @@ def test_withheld_sensor_bias_through_the_cli(tmp_path: Path, capsys: pytest.Cap
     from app.cli import main
 
     logs = tmp_path / "logs"
-    assert main(["protocol", str(logs), "--effect", "sensor_bias:2", "--param-error", "0.2", "--seed", "5"]) == 0
+    assert main(["protocol", str(logs), "--effect", "sensor_bias:2", "--param-error", "0.2", "--seed", "5",
+                 "--scale", "0.5"]) == 0
     assert len(list(logs.glob("*.csv"))) == 2 * len(VISIBLE)
     out = tmp_path / "report.json"
     assert main(["diagnose", str(logs), "--json", str(out)]) == 0
@@ -115,9 +116,9 @@ def test_withheld_sensor_bias_through_the_cli(tmp_path: Path, capsys: pytest.Cap
 
 @pytest.mark.slow
 def test_withheld_presliding_is_found_and_an_effect_free_rig_is_left_alone() -> None:
-    r = run_case("presliding_friction", 1, seed=11)
+    r = run_case("presliding_friction", 1, seed=11, scale=0.5)
     assert r["verdict"][:1] == ["presliding_friction"], (r["verdict"], r["rank"])
     p = r["report"]["ranking"][0]["params"]
     assert p["presliding_friction.sigma0"] == pytest.approx(MAGNITUDES["presliding_friction"][1].sigma0, rel=0.3)
-    null = run_case(None, seed=12)
+    null = run_case(None, seed=12, scale=0.5)
     assert null["verdict"] == [], null["report"]["ranking"][0]

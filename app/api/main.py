@@ -14,7 +14,7 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.api.models import ViserInfo
-from app.api.routers import engine, params, runs, sessions
+from app.api.routers import diagnoses, engine, params, runs, sessions
 from app.api.settings import Settings
 from app.engine.params import ParameterError
 from app.engine.station import Station, TransitionError
@@ -89,6 +89,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(runs.router)
     app.include_router(params.router)
     app.include_router(sessions.router)
+    app.include_router(diagnoses.router)
 
     @app.get("/api/viser", tags=["engine"], response_model=ViserInfo, summary="Where the live plots are served")
     def viser_url(request: Request) -> ViserInfo:

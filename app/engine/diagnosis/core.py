@@ -240,7 +240,7 @@ def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: 
     first = (starts or [start or {}])[0]
     # parameters the family says cannot interact with these effects stay where the
     # reference fit put them (e.g. flow capacities when only the torque balance changes)
-    frozen_names = getattr(family, "frozen", lambda _e: set())(effects)
+    frozen_names: set[str] = getattr(family, "frozen", lambda _e: set())(effects)
     fixed = {s.name: min(max(first.get(s.name, s.x0), s.lo), s.hi) for s in all_specs if s.name in frozen_names}
     specs = [s for s in all_specs if s.name not in fixed]
     scales = scales or channel_scales(family, preps)

@@ -94,15 +94,19 @@ def schedules(rep: int = 0, scale: float = 1.0) -> list[Schedule]:
     every = 1.5 * scale
     za = [1.0, 3.0 * a, 1.5, 3.5, 2.0, 2.0, 2.0, 2.0]
     zb = [2.0, 2.0, 2.0, 2.0, 1.0, 3.0 * a, 1.5, 3.5]
-    out.append(Schedule("prv_steps", every * len(za),
-                        lambda t, e=every: (_steps(t, za, e), _steps(t, zb, e), 0.0, 10.0), hold0, 3.0, True))
+    def prv_cmd(t: float, e: float = every) -> tuple[float, float, float, float]:
+        return _steps(t, za, e), _steps(t, zb, e), 0.0, 10.0
+
+    out.append(Schedule("prv_steps", every * len(za), prv_cmd, hold0, 3.0, True))
 
     every = 1.2 * scale
     ua = [0.0, 5.0, 4.2, 5.0, 5.8, 5.0, 0.0, 5.0, 5.0, 5.0]
     ub = [10.0, 5.0, 5.0, 5.0, 5.0, 5.0, 10.0, 5.8, 4.2, 10.0]
     zc = 2.0 * a
-    out.append(Schedule("dcv_steps", every * len(ua),
-                        lambda t, e=every: (zc, zc, _steps(t, ua, e), _steps(t, ub, e)), hold0, 3.0, True))
+    def dcv_cmd(t: float, e: float = every) -> tuple[float, float, float, float]:
+        return zc, zc, _steps(t, ua, e), _steps(t, ub, e)
+
+    out.append(Schedule("dcv_steps", every * len(ua), dcv_cmd, hold0, 3.0, True))
 
     fill = 2.0 * scale
     dur = fill + 8.0 * scale

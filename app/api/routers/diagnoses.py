@@ -1,0 +1,121 @@
+"""Sim-to-real gap diagnoses (issue 6): start one, read it back as a stored run of kind ``diagnosis``.
+
+A diagnosis runs in a worker thread, off the engine: it replays logs, it
+does not drive the rig. Its source is either the diagnosis protocol run on
+the simulated rig (optionally with effects switched on and parameter errors,
+to see what the tool finds) or stored runs' logs. The report is the run's
+``result`` (``GET /api/runs/{id}``); ``status`` is ``running`` until then.
+"""
+
+from __future__ import annotations
+
+import shutil
+import threading
+import traceback
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Request
+from pydantic import BaseModel, Field
+
+from app.api.deps import StoreDep
+from app.engine.params import EFFECT_NAMES, ParameterError
+from app.storage import Store
+
+router = APIRouter(prefix="/api/diagnoses", tags=["diagnoses"])
+EffectName = Literal[
+    "inertia", "vane_leakage", "external_leakage", "heat_transfer", "tube_dynamics", "presliding_friction",
+    "sensor_bias", "supply_droop", "valve_dynamics",
+]
+assert set(EffectName.__args__) == set(EFFECT_NAMES)  # type: ignore[attr-defined]
+
+
+class ProtocolSource(BaseModel):
+    """Run the diagnosis protocol on the simulated rig first.
+
+    Attributes:
+        effects: Effects switched on in the simulated rig (the diagnosed model lacks them).
+        magnitude: 1 (smaller) or 2 (larger) of the suite's two magnitudes.
+        param_error: Random error on the recalibratable nominal parameters (0.2 = ±20 %).
+        seed: Seed of the parameter errors and the sensor noise.
+        scale: Duration factor (1 ≈ 70 s of logs per repetition).
+    """
+
+    effects: list[EffectName] = Field(default_factory=list, max_length=9)
+    magnitude: Annotated[int, Field(ge=1, le=2)] = 2
+    param_error: Annotated[float, Field(ge=0.0, le=0.5)] = 0.0
+    seed: Annotated[int, Field(ge=0, le=2**31)] = 0
+    scale: Annotated[float, Field(ge=0.2, le=10.0)] = 1.0
+
+
+class DiagnosisRequest(BaseModel):
+    """What to diagnose: ``protocol`` (simulated) or ``run_ids`` (stored runs with logs)."""
+
+    protocol: ProtocolSource | None = None
+    run_ids: list[Annotated[int, Field(ge=1, le=2**62)]] | None = Field(None, min_length=2, max_length=200)
+    held_out: list[Annotated[str, Field(max_length=128)]] | None = Field(None, max_length=200)
+
+
+class DiagnosisStarted(BaseModel):
+    """A diagnosis accepted.
+
+    Attributes:
+        run_id: Stored id; ``GET /api/runs/{run_id}`` has the report once ``status`` is ``complete``.
+        status: Always ``running`` here.
+    """
+
+    run_id: int
+    status: Literal["running"] = "running"
+
+
+def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, sources: list[Path]) -> None:
+    from app.engine.diagnosis.protocol import run_protocol
+    from app.engine.diagnosis.run import diagnose_dir
+    from app.engine.diagnosis.suite import MAGNITUDES, perturbed
+    from app.engine.params import PlantParams
+
+    try:
+        if req.protocol is not None:
+            p = req.protocol
+            rig = perturbed(p.seed, p.param_error) if p.param_error > 0 else PlantParams()
+            rig = rig.with_effects(**{e: MAGNITUDES[e][p.magnitude - 1] for e in p.effects})
+            run_protocol(rig, seed=p.seed, scale=p.scale, outdir=logdir)
+        else:
+            logdir.mkdir(parents=True, exist_ok=True)
+            for src in sources:
+                for suffix in (".csv", ".json"):
+                    shutil.copyfile(src.with_suffix(suffix), logdir / (src.stem + suffix))
+        report = diagnose_dir(logdir, adapter="station", held_out=req.held_out)
+        v = report["verdict"]
+        hf = report["how_far"]
+        # metrics are numbers (the runs table's contract); the verdict's names are in the report
+        store.run_finished(run_id, "complete", {"effects_found": float(len(v["effects"])), "e_before": hf["e_before"],
+                                                "e_after": hf["e_after"], "e_floor": hf["e_floor"],
+                                                "unexplained_share": hf["unexplained_share"]}, report)
+    except Exception as exc:  # the job's failure is its stored result, not a lost thread
+        store.run_finished(run_id, "failed", None, {"error": str(exc), "trace": traceback.format_exc(limit=3)})
+
+
+@router.post("", response_model=DiagnosisStarted, status_code=202,
+             summary="Start a gap diagnosis (protocol on the simulator, or stored runs); poll GET /api/runs/{id}")
+def start(req: DiagnosisRequest, store: StoreDep, request: Request) -> DiagnosisStarted:
+    if (req.protocol is None) == (req.run_ids is None):
+        raise ParameterError("body = request: give exactly one of protocol or run_ids")
+    sources: list[Path] = []
+    for rid in req.run_ids or []:
+        r = store.run(rid)
+        if r is None:
+            raise ParameterError(f"run_ids = {rid}: run {rid} does not exist")
+        path = Path(r["log_csv"]) if r["log_csv"] else None
+        if path is None or not path.is_file() or not path.with_suffix(".json").is_file():
+            raise ParameterError(f"run_ids = {rid}: run {rid} has no log to replay")
+        sources.append(path)
+    if len({s.stem for s in sources}) != len(sources):
+        raise ParameterError("run_ids: two runs share a log name")
+    data_dir = Path(request.app.state.station.data_dir)
+    spec: dict[str, Any] = req.model_dump()
+    run_id = store.run_started("diagnosis", spec, "")
+    logdir = data_dir / "diagnoses" / f"diagnosis-{run_id}"
+    threading.Thread(target=_work, args=(store, run_id, req, logdir, sources), name=f"diagnosis-{run_id}",
+                     daemon=True).start()
+    return DiagnosisStarted(run_id=run_id)
