@@ -271,9 +271,9 @@ class RotaryFamily:
         noise = {c: white_noise_sd(ch[c]) for c in ("p_a", "p_b", "p_s")}
         noise["torque"] = white_noise_sd(ch["torque"]) * gain
         ps = ch["p_s"]
-        # the supply at rest: droop only ever lowers it, so the upper quartile less the
-        # noise's own quartile offset (0.674 σ) is the undrooped level
-        ps0 = float(np.percentile(ps, 75)) - 0.674 * noise["p_s"]
+        # the supply with no flow drawn: droop only ever lowers it, and some of every run
+        # draws nothing, so the 99th percentile less the noise's own (2.33 σ) is that level
+        ps0 = float(np.percentile(ps, 99)) - 2.33 * noise["p_s"]
         # regimes of the measured motion and commands (for "where")
         sp = np.abs(omega)
         still = _stuck(ch["theta"], max(1, int(round(STUCK_WINDOW_S / dt))))
