@@ -31,6 +31,13 @@ add (each at most three bounded parameters, named as in
    experiments that would tell the two apart.
 5. **How far**: NRMSE per channel before and after the selected effects, and
    the gap left unexplained.
+
+Optional family attributes (for expensive, piecewise-smooth models such as a
+replayed simulator): ``diff_step`` and ``max_nfev`` for the descent,
+``grid_points`` for a coarse grid start over each candidate's parameters,
+``frozen(effects)`` naming baseline parameters a candidate cannot trade with
+(held at the reference fit), and ``prefetch(preps, params_list, effects)`` to
+compute predictions for many parameter sets at once (e.g. on all cores).
 """
 
 from __future__ import annotations
@@ -234,7 +241,8 @@ def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: 
         scales: dict[str, float] | None = None, starts: list[dict[str, float]] | None = None) -> Fit:
     """Bounded least squares of the baseline (plus ``effects``) on ``preps``.
 
-    ``starts`` (several starting points; the best fit wins) overrides ``start``.
+    ``starts`` (several starting points) overrides ``start``: the descent
+    starts from the one with the lowest cost.
     """
     all_specs = _specs(family, effects)
     first = (starts or [start or {}])[0]
