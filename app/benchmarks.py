@@ -161,6 +161,40 @@ with sync_playwright() as p:
 """
 
 
+_REQUESTS = """
+import http.client, json, sys, time, threading
+host, port, rps = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
+paths = ["/api/engine", "/api/live?since=-1&max_rows=200", "/api/runs?limit=20", "/api/health", "/api/params"]
+lat, errors, stop = [], [0], threading.Event()
+def reader():
+    sys.stdin.readline()
+    stop.set()
+threading.Thread(target=reader, daemon=True).start()
+conn = http.client.HTTPConnection(host, port, timeout=10)
+print("ready", flush=True)
+k, t_next = 0, time.monotonic()
+while not stop.is_set():
+    t0 = time.monotonic()
+    try:
+        conn.request("GET", paths[k % len(paths)])
+        r = conn.getresponse()
+        r.read()
+        if r.status != 200:
+            errors[0] += 1
+    except Exception:
+        errors[0] += 1
+        conn = http.client.HTTPConnection(host, port, timeout=10)
+    lat.append(time.monotonic() - t0)
+    k += 1
+    t_next += 1.0 / rps
+    time.sleep(max(0.0, t_next - time.monotonic()))
+lat.sort()
+q = lambda f: 1e3 * lat[min(len(lat) - 1, int(f * len(lat)))] if lat else float("nan")
+print(json.dumps({"requests": len(lat), "errors": errors[0], "latency_p50_ms": q(0.5), "latency_p99_ms": q(0.99)}),
+      flush=True)
+"""
+
+
 def _normal_scheduling() -> None:
     from app.engine.loop import set_scheduling
 
@@ -174,8 +208,17 @@ def _serve_thread_priority(settings: Any) -> None:
         make_server_realtime()
 
 
-def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chromium") -> dict[str, Any]:
+def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chromium", rate_hz: float = 200.0,
+         rps: float = 0.0) -> dict[str, Any]:
     """Engine timing with no client, then with ``clients`` browser pages watching (see ``bench/load.py``).
+
+    Args:
+        clients: Browser pages (half dashboards, half viser live plots).
+        seconds: Length of each measured phase [s].
+        chromium: The browser binary.
+        rate_hz: The engine's control rate [Hz] (issue 7 asks for 500).
+        rps: REST requests per second from another process during the watched
+            phase (GETs of state, live data, runs, health, parameter sets).
 
     The browsers are driven from a separate process, as they would be from
     other machines: Playwright's client decodes every websocket frame of the
@@ -205,7 +248,8 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
             return int(s.getsockname()[1])
 
     port, vport = free(), free()
-    settings = Settings(data_dir=tempfile.mkdtemp(prefix="cwrr-load-"), port=port, viser_port=vport)
+    settings = Settings(data_dir=tempfile.mkdtemp(prefix="cwrr-load-"), port=port, viser_port=vport,
+                        rate_hz=rate_hz)
     app = create_app(settings)
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     def run() -> None:
@@ -234,9 +278,13 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
         engine.reset_window()
         time.sleep(seconds)
         h = call("GET", "/api/health")
-        call("POST", "/api/engine/stop")
+        if call("GET", "/api/engine")["state"] == "running":  # a fault (the watchdog, say) already ended it
+            call("POST", "/api/engine/stop")
+        st = call("GET", "/api/engine")
+        fault = (st.get("safety") or {}).get("fault")
         return {k: h[k] for k in ("jitter_p50_ms", "jitter_p99_ms", "jitter_max_ms", "measured_rate_hz",
-                                  "realtime")} | {"overruns": h["overruns"] - before}
+                                  "realtime")} | {"overruns": h["overruns"] - before, "state_after": st["state"],
+                                                  "fault": fault["message"] if fault else None}
 
     import os
 
@@ -252,7 +300,22 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
         assert proc.stdin is not None and proc.stdout is not None
         if proc.stdout.readline().strip() != "ready":
             raise RuntimeError("the browser clients did not start")
+        rest = None
+        if rps > 0:
+            rest = subprocess.Popen([sys.executable, "-c", _REQUESTS, "127.0.0.1", str(port), str(rps)],
+                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                    preexec_fn=_normal_scheduling)
+            assert rest.stdin is not None and rest.stdout is not None
+            if rest.stdout.readline().strip() != "ready":
+                raise RuntimeError("the REST client did not start")
         watched = phase()
+        requests: dict[str, Any] | None = None
+        if rest is not None:
+            assert rest.stdin is not None and rest.stdout is not None
+            rest.stdin.write("stop\n")
+            rest.stdin.flush()
+            requests = json.loads(rest.stdout.readline())
+            rest.wait(30)
         proc.stdin.write("stop\n")
         proc.stdin.flush()
         drawn = int(proc.stdout.readline().strip() or 0)
@@ -265,5 +328,6 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
                 os.sched_setscheduler(0, policy, os.sched_param(0))
             except OSError:
                 pass
-    return {"clients": clients, "dashboards_drawing": drawn, "quiet": quiet, "watched": watched,
+    return {"clients": clients, "rate_hz": rate_hz, "rps": rps, "requests": requests,
+            "dashboards_drawing": drawn, "quiet": quiet, "watched": watched,
             "p99_ratio": watched["jitter_p99_ms"] / max(quiet["jitter_p99_ms"], 1e-9)}

@@ -287,11 +287,17 @@ def _identify_pid(args: argparse.Namespace) -> int:
 
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
+    from pydantic import ValidationError
 
     from app.api.main import create_app
     from app.api.settings import Settings
 
-    settings = Settings(host=args.host, port=args.port, viser_port=args.viser_port)
+    try:
+        settings = Settings(host=args.host, port=args.port, viser_port=args.viser_port)
+    except ValidationError as exc:
+        reasons = (f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg'].removeprefix('Value error, ')}"
+               for e in exc.errors(include_input=False))
+        raise ValueError("; ".join(reasons)) from None
     if settings.realtime:
         from app.engine.loop import make_server_realtime
 
@@ -325,6 +331,10 @@ def _protocol(args: argparse.Namespace) -> int:
     from app.engine.diagnosis.suite import MAGNITUDES, perturbed
     from app.engine.params import PlantParams
 
+    if not 0.0 <= args.param_error <= 0.5:
+        raise ValueError(f"--param-error {args.param_error} is outside its allowed range [0, 0.5]")
+    if not 0.2 <= args.scale <= 10.0:
+        raise ValueError(f"--scale {args.scale} is outside its allowed range [0.2, 10]")
     rig = perturbed(args.seed, args.param_error) if args.param_error > 0 else PlantParams()
     for spec in args.effect or []:
         name, _, mag = spec.partition(":")

@@ -11,6 +11,7 @@ from fastapi.testclient import TestClient
 
 from app.api.main import create_app
 from app.api.settings import Settings
+from app.storage import Store
 
 
 @pytest.fixture()
@@ -20,10 +21,8 @@ def client(tmp_path: Path) -> Iterator[TestClient]:
         yield c
 
 
-def _join(run_id: int) -> None:
-    for t in threading.enumerate():
-        if t.name == f"diagnosis-{run_id}":
-            t.join(600)
+def _join(client: TestClient, run_id: int) -> None:
+    assert client.app.state.jobs.join(f"diagnosis-{run_id}", 600)  # type: ignore[attr-defined]
 
 
 @pytest.mark.parametrize(("body", "field", "words"), [
@@ -32,6 +31,7 @@ def _join(run_id: int) -> None:
     ({"protocol": {"effects": ["friction"]}}, "effects", ""),
     ({"protocol": {"param_error": 0.9}}, "param_error", ""),
     ({"run_ids": [1, 2]}, "run_ids", "run 1 does not exist"),
+    ({"protocol": {}, "held_out": ["hold-9"]}, "held_out", "no log of that name"),
 ])
 def test_bad_diagnosis_requests_are_refused_and_store_nothing(client: TestClient, body: dict, field: str,
                                                               words: str) -> None:
@@ -48,7 +48,7 @@ def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestCli
                                                           "scale": 0.4}})
     assert r.status_code == 202, r.text
     rid = r.json()["run_id"]
-    _join(rid)
+    _join(client, rid)
     run = client.get(f"/api/runs/{rid}").json()
     assert run["kind"] == "diagnosis" and run["status"] == "complete", run["result"]
     rep = run["result"]
@@ -58,3 +58,24 @@ def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestCli
     assert {"baseline", "ranking", "verdict", "where", "how_far"} <= set(rep)
     page = client.get("/static/diagnosis.html")
     assert page.status_code == 200 and "/api/diagnoses" in page.text
+
+
+def test_stopping_the_server_cancels_a_running_diagnosis_and_records_it(tmp_path: Path) -> None:
+    app = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))
+    with TestClient(app) as c:
+        rid = c.post("/api/diagnoses", json={"protocol": {"scale": 10.0}}).json()["run_id"]
+        assert c.get(f"/api/runs/{rid}").json()["status"] == "running"
+        assert app.state.jobs.running() == [f"diagnosis-{rid}"]
+        # one diagnosis at a time: a second would halve the speed of both and crowd the engine
+        r = c.post("/api/diagnoses", json={"protocol": {}})
+        assert r.status_code == 409 and f"diagnosis-{rid} is still running" in r.json()["detail"]
+        assert len(c.get("/api/runs", params={"kind": "diagnosis"}).json()) == 1
+    # the lifespan waited for the job: nothing of it outlives the server
+    assert app.state.jobs.running() == []
+    assert not [t for t in threading.enumerate() if t.name.startswith("diagnosis-")]
+    store = Store(Settings(data_dir=str(tmp_path)).db_url)
+    try:
+        run = store.run(rid)
+    finally:
+        store.close()
+    assert run is not None and run["status"] == "cancelled" and "stopped" in run["result"]["error"]

@@ -23,7 +23,7 @@ from tests.conftest import free_port, live_server
 
 CHROMIUM = "/usr/bin/chromium"
 SHOTS = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
-pytestmark = [pytest.mark.slow,
+pytestmark = [pytest.mark.slow, pytest.mark.serial,
               pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="Debian chromium not installed "
                                  "(./dev test installs it where apt and root are available)")]
 
@@ -128,6 +128,17 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
         row.get_by_text("PARQUET").click()
     assert Path(dl.value.path()).read_bytes()[:4] == b"PAR1"
 
+    # issue 7: the emergency stop is always there and always enabled; it latches until cleared
+    estop = page.locator("#estop")
+    expect(estop).to_be_visible()
+    expect(estop).to_be_enabled()
+    estop.click()
+    expect(page.locator("#state")).to_have_text("fault")
+    expect(page.locator("#engine-msg")).to_contain_text("[estop]")
+    expect(page.locator("[data-action=start]").first).to_be_disabled()
+    page.click("[data-action=clear]")
+    expect(page.locator("#state")).to_have_text("disconnected")
+
     assert not errors, errors
 
 
@@ -185,3 +196,42 @@ def test_a_researcher_tunes_a_pressure_loop_and_exercises_with_the_gains(station
     expect(page.locator("#start")).to_be_disabled()
     page.click("[data-action=disconnect]")
     assert not errors, errors
+
+
+def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser: object,
+                                                                         tmp_path: Path) -> None:
+    from playwright.sync_api import Browser, expect
+
+    assert isinstance(browser, Browser)
+    therapist = "therapist-browser-" + "0123456789"
+    settings = Settings(data_dir=str(tmp_path), port=free_port(), viser_port=0, auto_connect=False,
+                        therapist_token=therapist, admin_token="admin-browser-" + "0123456789")  # type: ignore[arg-type]
+    with live_server(settings) as base:
+        page = browser.new_page(viewport={"width": 1400, "height": 1000}, accept_downloads=True)
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(base)
+        expect(page.locator("#signin")).to_be_visible(timeout=30000)
+        expect(page.locator("#state")).to_have_text("sign in")
+        page.fill("#token", "not-the-token-" + "0123456789")
+        page.click("#signin-btn")
+        expect(page.locator("#who")).to_have_text("token not accepted")
+        page.fill("#token", therapist)
+        page.click("#signin-btn")
+        expect(page.locator("#who")).to_have_text("signed in: therapist")
+        expect(page.locator("#signin")).to_be_hidden()
+        expect(page.locator("#state")).to_have_text("disconnected", timeout=10000)
+        page.click("[data-action=connect]")
+        expect(page.locator("#state")).to_have_text("idle", timeout=60000)
+        page.click("[data-action=start]")
+        expect(page.locator("#state")).to_have_text("running", timeout=30000)
+        page.click("#stop")
+        expect(page.locator("#state")).to_have_text("idle", timeout=30000)
+        # the export link carries the token too (a plain link would get 401)
+        link = page.locator("#runs a", has_text="CSV").first
+        expect(link).to_be_visible(timeout=30000)
+        with page.expect_download() as dl:
+            link.click()
+        text = Path(dl.value.path()).read_text()
+        assert text.startswith("t,") and text.count("\n") > 10
+        assert "token" not in page.url and not errors, errors

@@ -87,6 +87,21 @@ def test_diagnose_refuses_linear_rig_station_logs(tmp_path: Path) -> None:
         diagnose_dir(tmp_path)
 
 
+@pytest.mark.parametrize(("args", "words"), [
+    (["--effect", "wobble"], "unknown effect 'wobble'"),
+    (["--effect", "inertia:3"], "magnitude must be 1 (smaller) or 2 (larger)"),
+    (["--scale", "0"], "--scale 0.0 is outside"),
+    (["--param-error", "2"], "--param-error 2.0 is outside"),
+])
+def test_cwrr_protocol_refuses_bad_arguments_and_writes_nothing(tmp_path: Path, args: list[str], words: str,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    from app.cli import main
+
+    assert main(["protocol", str(tmp_path / "logs"), *args]) == 2
+    assert words in capsys.readouterr().err
+    assert not (tmp_path / "logs").exists()
+
+
 @pytest.mark.slow
 def test_withheld_sensor_bias_through_the_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """End to end as a researcher would: run the protocol on a rig with offsets on its sensors and

@@ -91,10 +91,20 @@ def test_the_install_steps_work_in_a_fresh_venv(tmp_path: Path) -> None:
         port = int(s.getsockname()[1])
     cmd = json.loads([a for op, a in ins if op == "CMD"][-1])
     assert cmd[:2] == ["cwrr", "serve"]
-    argv = [str(venv / "bin" / "cwrr"), "serve", "--host", "127.0.0.1", "--port", str(port), "--viser-port", "0"]
+    # the CMD as written (it binds all interfaces), on a free port and without viser
+    argv = [str(venv / "bin" / "cwrr"), *cmd[1:]]
+    argv[argv.index("--port") + 1] = str(port)
+    argv[argv.index("--viser-port") + 1] = "0"
+    assert argv[argv.index("--host") + 1] == "0.0.0.0"
     env = {**os.environ, **env_vars, "CWRR_DATA_DIR": str(tmp_path / "data"), "NUMBA_CACHE_DIR": str(tmp_path / "nb"),
            "PATH": f"{venv / 'bin'}:{os.environ.get('PATH', '')}"}
     env.pop("PYTHONPATH", None)  # the installed package, not this checkout
+    for k in ("CWRR_ADMIN_TOKEN", "CWRR_THERAPIST_TOKEN"):
+        env.pop(k, None)
+    # a container without a token must not open the rig to the network: it exits and says why
+    refused = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and "CWRR_ADMIN_TOKEN" in refused.stderr
+    env["CWRR_ADMIN_TOKEN"] = "docker-test-token-" + "0123456789"
     server = subprocess.Popen(argv, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
         health = [a for op, a in ins if op == "HEALTHCHECK"][-1]

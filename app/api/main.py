@@ -9,11 +9,14 @@ from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from app.api.models import ViserInfo
+from app.api.auth import READ, BodyLimit, Role, presented_role
+from app.api.jobs import Jobs
+from app.api.models import AuthInfo, ViserInfo
 from app.api.routers import diagnoses, engine, params, runs, sessions
 from app.api.settings import Settings
 from app.engine.params import ParameterError
@@ -31,8 +34,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = Store(settings.db_url)
         station = Station(data_dir=settings.data_dir, sink=store, rate_hz=settings.rate_hz,
-                          realtime=settings.realtime)
+                          realtime=settings.realtime,
+                          stall_s=settings.watchdog_s)
         app.state.store, app.state.station = store, station
+        app.state.jobs = jobs = Jobs()
         plots = None
         if settings.start_engine:
             if settings.auto_connect:
@@ -48,16 +53,30 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             if plots is not None:
                 plots.stop()
+            jobs.shutdown()  # before the store closes: a stopped job records itself as cancelled
             station.close()
             store.close()
 
     app = FastAPI(title="CWRR Lab Station", version="0.2.0", lifespan=lifespan,
                   description="Control station of the pneumatic wrist/forearm rehabilitation robot (CWRR).",
-                  responses={400: {"description": "The body is not readable JSON"}})
+                  responses={400: {"description": "The body is not readable JSON"},
+                             413: {"description": "The body is larger than CWRR_MAX_BODY_BYTES"}},
+                  )
+    app.state.settings = settings
+    too_large = (f"request body too large: the limit is {settings.max_body_bytes} bytes "
+                 f"(CWRR_MAX_BODY_BYTES)")
+
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes, detail=too_large)
+
+    if settings.cors_origins:  # closed unless a lab names the pages that may call the API
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_credentials=False,
+                           allow_methods=["GET", "POST"], allow_headers=["Authorization", "Content-Type"])
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         headers = dict(exc.headers or {})
+        if exc.status_code == 413:
+            return JSONResponse(status_code=413, content={"detail": too_large})
         if exc.status_code == 405:
             # Starlette names only the first matching route's methods; a path served by
             # several routes (GET and POST /api/params) must list them all
@@ -91,12 +110,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(sessions.router)
     app.include_router(diagnoses.router)
 
-    @app.get("/api/viser", tags=["engine"], response_model=ViserInfo, summary="Where the live plots are served")
+    @app.get("/api/viser", tags=["engine"], response_model=ViserInfo, summary="Where the live plots are served",
+             dependencies=[READ])
     def viser_url(request: Request) -> ViserInfo:
         if getattr(request.app.state, "plots", None) is None:
             return ViserInfo(url=None)
         host = request.url.hostname or settings.host
         return ViserInfo(url=f"http://{host}:{settings.viser_port}")
+
+    @app.get("/api/auth", tags=["auth"], response_model=AuthInfo,
+             summary="Whether a token is needed, and the role of the one sent (needs none itself)")
+    def auth_info(request: Request) -> AuthInfo:
+        role = presented_role(request)
+        return AuthInfo(required=settings.auth_enabled,
+                        role="admin" if role == Role.ADMIN else "therapist" if role == Role.THERAPIST else None)
 
     @app.get("/", include_in_schema=False)
     def index() -> FileResponse:

@@ -49,6 +49,9 @@ class EngineStatus(BaseModel):
         fault: The latched fault's message.
         progress: Progress of the current work.
         last_run: How the last run ended (id, status, metrics or result).
+        safety: The safety supervisor: ``fault`` (code, message, t [s],
+            channel, or null), ``no_action`` (the soft ROM limit is holding the
+            vane), ``faults_total`` and the ``limits`` in force.
     """
 
     state: str
@@ -59,6 +62,7 @@ class EngineStatus(BaseModel):
     fault: str = ""
     progress: dict[str, Any] | None = None
     last_run: dict[str, Any] | None = None
+    safety: dict[str, Any] | None = None
 
 
 class RunRequest(BaseModel):
@@ -408,3 +412,16 @@ class ViserInfo(BaseModel):
     """
 
     url: str | None
+
+
+class AuthInfo(BaseModel):
+    """Whether this station asks for a token, and what the presented one allows.
+
+    Attributes:
+        required: Whether API calls need ``Authorization: Bearer <token>``.
+        role: ``therapist`` or ``admin`` for a valid token (``admin`` for the
+            local user of a station without tokens); None otherwise.
+    """
+
+    required: bool
+    role: Literal["therapist", "admin"] | None

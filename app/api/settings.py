@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import ipaddress
 from typing import Annotated
 
-from pydantic import Field
+from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+MIN_TOKEN_CHARS = 16
 
 
 class Settings(BaseSettings):
@@ -23,9 +26,17 @@ class Settings(BaseSettings):
             the API surface alone may say no).
         realtime: Run the control loop at SCHED_FIFO priority where allowed
             (root or CAP_SYS_NICE); ``/api/health`` reports whether it took.
+        admin_token: Bearer token of the admin role (identification, tuning,
+            parameter sets, diagnoses, and all a therapist may do).
+        therapist_token: Bearer token of the therapist role (exercises, sessions).
+        cors_origins: Browser origins allowed to call the API from other pages
+            (none by default: the dashboard is served by this server).
+        max_body_bytes: Largest request body [bytes]; larger ones get 413.
+        watchdog_s: The engine watchdog's stall time [s] (see ``Engine``).
     """
 
-    model_config = SettingsConfigDict(env_prefix="CWRR_")
+    # hide_input_in_errors: a refused setting must not echo the environment (tokens) into a log
+    model_config = SettingsConfigDict(env_prefix="CWRR_", hide_input_in_errors=True)
 
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=1, le=65535)] = 8000
@@ -36,8 +47,48 @@ class Settings(BaseSettings):
     auto_connect: bool = True
     start_engine: bool = True
     realtime: bool = True
+    admin_token: SecretStr | None = None
+    therapist_token: SecretStr | None = None
+    cors_origins: list[str] = []
+    max_body_bytes: Annotated[int, Field(ge=1024, le=1 << 30)] = 1 << 20
+    watchdog_s: Annotated[float, Field(gt=0.0, le=60.0)] = 1.0
+
+    @model_validator(mode="after")
+    def _access_rules(self) -> Settings:
+        tokens = {name: t.get_secret_value() for name, t in
+                  (("admin_token", self.admin_token), ("therapist_token", self.therapist_token)) if t is not None}
+        for name, value in tokens.items():
+            if len(value) < MIN_TOKEN_CHARS or value != value.strip():
+                # the value itself is never echoed: error messages end up in logs
+                raise ValueError(f"{name} must be at least {MIN_TOKEN_CHARS} characters with no surrounding spaces "
+                                 f"(e.g. python -c 'import secrets; print(secrets.token_urlsafe(24))')")
+        if len(tokens) == 2 and len(set(tokens.values())) == 1:
+            raise ValueError("admin_token and therapist_token must differ (a role is known by its token)")
+        if not tokens and not is_loopback(self.host):
+            raise ValueError(f"host = {self.host!r} would open the rig to the network without authentication: "
+                             f"set CWRR_ADMIN_TOKEN (and optionally CWRR_THERAPIST_TOKEN), or bind to 127.0.0.1")
+        if "*" in self.cors_origins:
+            raise ValueError("cors_origins: '*' would let any web page drive the rig; list the origins")
+        return self
+
+    @property
+    def auth_enabled(self) -> bool:
+        """Whether requests must carry a token."""
+        return self.admin_token is not None or self.therapist_token is not None
 
     @property
     def db_url(self) -> str:
         """The effective database URL."""
         return self.database_url or f"sqlite:///{self.data_dir}/cwrr.sqlite3"
+
+
+def is_loopback(host: str) -> bool:
+    """Whether a bind address is this machine only (``localhost`` counts)."""
+    if host == "localhost":
+        return True
+    try:
+        ip = ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    mapped = getattr(ip, "ipv4_mapped", None)  # ::ffff:127.0.0.1 is loopback too
+    return bool(ip.is_loopback or (mapped is not None and mapped.is_loopback))

@@ -68,6 +68,35 @@ class HumanProgram:
         return HumanProgram(np.array([0.0, duration]), np.array([0.0, 0.0]))
 
     @staticmethod
+    def move(theta_from: float, theta_to: float, t0: float, speed: float = 0.5, wait_s: float = 0.0,
+             ) -> HumanProgram:
+        """The user holds ``theta_from`` for ``wait_s``, then moves smoothly to ``theta_to`` and stays.
+
+        A raised-cosine profile (peak speed ``speed``), so the arm never jumps:
+        a new intended angle far from the handle would make the arm impedance
+        yank it.
+
+        Args:
+            theta_from: Where the handle is [rad].
+            theta_to: Where the user takes it [rad].
+            t0: Start time of the program [s] (rig time).
+            speed: Peak angular speed [rad/s], > 0.
+            wait_s: Hold before moving [s].
+        """
+        if not speed > 0.0 or not wait_s >= 0.0:
+            raise ParameterError(f"human move: speed = {speed} rad/s must be > 0 and wait_s = {wait_s} s ≥ 0")
+        dur = HumanProgram.move_time(theta_from, theta_to, speed)
+        u = np.linspace(0.0, 1.0, 17)
+        t = np.concatenate([[t0], t0 + wait_s + dur * u])
+        pos = np.concatenate([[theta_from], theta_from + (theta_to - theta_from) * 0.5 * (1.0 - np.cos(np.pi * u))])
+        return HumanProgram(t, pos)
+
+    @staticmethod
+    def move_time(theta_from: float, theta_to: float, speed: float = 0.5) -> float:
+        """Duration of :meth:`move`'s motion [s] (a raised cosine peaks at π/2 × the mean speed)."""
+        return float(np.pi / 2.0 * abs(theta_to - theta_from) / speed)
+
+    @staticmethod
     def hold(theta: float, duration: float = 1.0) -> HumanProgram:
         """The user stops where the handle is and holds it there.
 

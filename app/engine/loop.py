@@ -8,6 +8,7 @@ jitter and overruns.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import deque
@@ -201,6 +202,16 @@ class Engine:
             must be quick (it runs inside the period).
         realtime: Ask for SCHED_FIFO priority for the paced thread (see
             :func:`make_realtime`); :attr:`realtime_note` says why not when refused.
+        stall_s: Watchdog of the paced thread: when no period has completed
+            for this long [s], a second thread writes the backend's safe
+            command itself and latches a ``stall`` fault in ``safety`` (if it
+            has ``trip``). It cannot help when another thread holds the
+            interpreter lock throughout; on the real rig the DAQ's own
+            watchdog covers that and a dead process. The default, 1 s, is
+            four times the longest pause seen on a 2-core machine busy with
+            a browser and a test run (258 ms tripped a 0.25 s watchdog there):
+            a held command is safe for that long, a spurious trip ends a
+            therapy session.
     """
 
     def __init__(
@@ -214,6 +225,7 @@ class Engine:
         recorder: RunLogWriter | None = None,
         on_tick: Callable[[Measurement, Command], None] | None = None,
         realtime: bool = False,
+        stall_s: float = 1.0,
     ) -> None:
         if not (1.0 <= rate_hz <= 10000.0):
             raise ValueError(f"rate_hz = {rate_hz} is outside its allowed range [1, 10000] Hz")
@@ -239,6 +251,12 @@ class Engine:
         self.want_realtime = realtime
         self.realtime = False
         self.realtime_note = "not requested"
+        if not 0.0 < stall_s <= 60.0:
+            raise ValueError(f"stall_s = {stall_s} is outside its allowed range (0, 60] s")
+        self.stall_s = stall_s
+        self.stalls = 0
+        self._watchdog: threading.Thread | None = None
+        self._last_done = time.monotonic()
 
     def tick(self) -> Command:
         """One period: read → estimate → control → safety → write → log."""
@@ -255,6 +273,7 @@ class Engine:
         if self.on_tick is not None:
             self.on_tick(meas, applied)
         self.ticks += 1
+        self._last_done = time.monotonic()
         return applied
 
     def reset_window(self) -> None:
@@ -263,13 +282,39 @@ class Engine:
         self._wall.clear()
 
     def run_for(self, duration: float) -> None:
-        """Run synchronously for ``duration`` seconds of clock time."""
+        """Run synchronously for ``duration`` seconds of clock time.
+
+        An exception from the backend or a stage leaves the rig as the paced
+        thread would (fault latched in ``safety``, safe command written,
+        :attr:`error` set) and is then raised.
+        """
         n = int(round(duration * self.rate_hz))
         t = self.clock.now()
-        for i in range(n):
-            self.clock.sleep_until(t + i * self.period)
-            self._timed_tick(t + i * self.period)
+        try:
+            for i in range(n):
+                self.clock.sleep_until(t + i * self.period)
+                self._timed_tick(t + i * self.period)
+        except BaseException as exc:
+            self._fail(exc)
+            raise
         self.clock.sleep_until(t + n * self.period)
+
+    def _fail(self, exc: BaseException) -> None:
+        self.error = exc
+        trip = getattr(self.safety, "trip", None)
+        if trip is not None:
+            link = isinstance(exc, (OSError, TimeoutError, ConnectionError))
+            t = self.last_measurement.t if self.last_measurement is not None else math.nan
+            trip("link_lost" if link else "engine_error", f"{type(exc).__name__}: {exc}", t)
+        try:
+            self.backend.write(self._fault_command())
+        except Exception:  # a dead link cannot take the safe command; the DAQ watchdog holds it
+            pass
+
+    def _fault_command(self) -> Command:
+        """The safety stage's fault state if it has one, else the backend's safe command."""
+        cmd = getattr(self.safety, "fault_command", None)
+        return cmd if isinstance(cmd, Command) else self.backend.safe_command()
 
     def _timed_tick(self, deadline: float) -> None:
         start = self.clock.now()
@@ -285,8 +330,32 @@ class Engine:
         if self._thread is not None and self._thread.is_alive():
             raise RuntimeError("engine already running")
         self._stop.clear()
+        self._last_done = time.monotonic()
         self._thread = threading.Thread(target=self._run, name="cwrr-engine", daemon=True)
         self._thread.start()
+        self._watchdog = threading.Thread(target=self._watch, name="cwrr-watchdog", daemon=True)
+        self._watchdog.start()
+
+    def _watch(self) -> None:
+        """Safe outputs when the paced thread stops completing periods (see ``stall_s``)."""
+        tripped = False
+        while not self._stop.wait(min(self.period, self.stall_s / 4)):
+            late = time.monotonic() - self._last_done
+            if late < self.stall_s:
+                tripped = False
+                continue
+            if tripped or self._thread is None or not self._thread.is_alive():
+                continue
+            tripped = True
+            self.stalls += 1
+            trip = getattr(self.safety, "trip", None)
+            if trip is not None:
+                trip("stall", f"the control loop completed no period for {late * 1e3:.0f} ms "
+                     f"(watchdog: {self.stall_s * 1e3:.0f} ms)")
+            try:
+                self.backend.write(self._fault_command())
+            except Exception:  # the link may be what stalled; the DAQ watchdog is the backstop
+                pass
 
     def _run(self) -> None:
         if self.want_realtime:
@@ -307,11 +376,7 @@ class Engine:
                     # skip missed periods rather than bursting to catch up
                     nxt += (int(lag / self.period)) * self.period
         except BaseException as exc:
-            self.error = exc
-            try:
-                self.backend.write(self.backend.safe_command())
-            finally:
-                pass
+            self._fail(exc)
 
     def stop(self, timeout: float = 2.0) -> None:
         """Stop the background thread and put the rig in its safe state."""
@@ -319,6 +384,9 @@ class Engine:
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
+        if self._watchdog is not None:
+            self._watchdog.join(timeout)
+            self._watchdog = None
         self.backend.write(self.backend.safe_command())
 
     @property

@@ -5,7 +5,7 @@ States (issue 5)::
     disconnected ──connect──▶ idle ──start──▶ running ───┐
           ▲                   │ ▲ ──estimate─▶ identifying ┤ stop / finished
           └────disconnect─────┘ └──────── stopping ◀──────┘
-    any ──engine error──▶ fault (latched; ``clear`` → disconnected)
+    any ──engine error, safety fault, e-stop──▶ fault (latched; ``clear`` → disconnected)
 
 While connected the engine thread always runs: idle periods send the
 backend's safe command; a run or an identification swaps its own
@@ -39,6 +39,7 @@ from app.engine.hardware.base import SAFE_COMMAND, Command, HardwareInterface, M
 from app.engine.loop import Controller, Engine, WallClock
 from app.engine.params import ParameterError, PlantParams, SensorParams
 from app.engine.runlog import RunLogWriter
+from app.engine.safety import SafetyLimits, SafetySupervisor
 from app.engine.scenarios import SCENARIOS, Case, ScenarioSettings, case_controller, case_program, score_case
 
 CONTROL_RATE_HZ = 200.0  # thesis 3.3
@@ -269,6 +270,8 @@ class RunJob:
         on_program_start: Called once, with the rig time [s], at the end of
             pressurising (starts the simulated user).
         on_disturbance: Called once at the disturbance time (SC-4's PRV-b drop).
+        pressurise_s: Time at P_w before the program starts [s] (longer when the
+            user first brings the handle back to neutral).
     """
 
     spec: RunSpec
@@ -277,6 +280,7 @@ class RunJob:
     t_d: float | None
     on_program_start: Callable[[float], None]
     on_disturbance: Callable[[], None]
+    pressurise_s: float = PRESSURISE_S
     t0: float | None = None
     t_prog: float | None = None
     disturbed: bool = False
@@ -290,7 +294,7 @@ class RunJob:
         if self.done:
             return SAFE_COMMAND
         if self.t_prog is None:
-            if meas.t - self.t0 < PRESSURISE_S:
+            if meas.t - self.t0 < self.pressurise_s:
                 z = self.spec.pw_bar - P_ATM / BAR  # PRV static map P = z + P_atm (SPEC §3)
                 return Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
             self.t_prog = meas.t
@@ -323,6 +327,9 @@ class Station:
         sink: Optional run store.
         rate_hz: Control rate [Hz].
         realtime: Run the paced loop at SCHED_FIFO priority where the OS allows it.
+        limits: Safety limits beyond each rig's defaults (``SafetyLimits``
+            field → value, e.g. ``{"p_max_bar": 5.0}``).
+        stall_s: The engine watchdog's stall time [s].
     """
 
     def __init__(
@@ -332,8 +339,14 @@ class Station:
         sink: RunSink | None = None,
         rate_hz: float = CONTROL_RATE_HZ,
         realtime: bool = False,
+        limits: dict[str, Any] | None = None,
+        stall_s: float = 1.0,
     ) -> None:
         self.realtime = realtime
+        self.limit_overrides = dict(limits or {})
+        SafetyLimits.for_rig("rotary", **self.limit_overrides)  # refuse bad limits at construction
+        self.stall_s = stall_s
+        self.safety = SafetySupervisor(SafetyLimits.for_rig("rotary", **self.limit_overrides), 1.0 / rate_hz)
         self.backend_factory = backend_factory or _sim_backend
         self.data_dir = Path(data_dir)
         self.sink = sink
@@ -361,11 +374,16 @@ class Station:
 
     @property
     def state(self) -> State:
-        """Current state (an engine error latches :attr:`State.FAULT`)."""
+        """Current state (an engine error or a safety fault latches :attr:`State.FAULT`)."""
         with self._lock:
-            if self.engine is not None and self.engine.error is not None and self._state != State.FAULT:
-                self.fault_message = f"{type(self.engine.error).__name__}: {self.engine.error}"
-                self._state = State.FAULT
+            if self._state != State.FAULT:
+                f = self.safety.fault
+                if f is not None:
+                    self.fault_message = f.message
+                    self._state = State.FAULT
+                elif self.engine is not None and self.engine.error is not None:
+                    self.fault_message = f"{type(self.engine.error).__name__}: {self.engine.error}"
+                    self._state = State.FAULT
             return self._state
 
     def allowed(self) -> list[str]:
@@ -405,6 +423,8 @@ class Station:
             backend = self.backend_factory(self.clock, 1.0 / self.rate_hz, rig)
             self.rig = rig
             self.supervisor = Supervisor(backend.safe_command())
+            self.safety = SafetySupervisor(SafetyLimits.for_rig(rig.kind, **self.limit_overrides),
+                                           1.0 / self.rate_hz)
             # The first read/step compiles the numba kernels (seconds on a fresh
             # install); doing it here keeps that stall out of the loop's jitter.
             warm = InteractionController()
@@ -441,6 +461,19 @@ class Station:
             set_program = getattr(backend, "set_program", None)
             set_dist = getattr(backend, "set_disturbance", None)
 
+            # a run started while the simulated user is away from neutral: they bring the
+            # handle back during pressurising (which waits for them), then the program starts
+            pressurise_s = PRESSURISE_S
+            last = self.live.latest()
+            if set_program is not None and last is not None:
+                from app.engine.human import HumanProgram
+
+                theta = float(last[LIVE_COLUMNS.index("theta")])
+                start_pos = float(prog.pos[0])
+                if abs(theta - start_pos) > 0.01:
+                    set_program(HumanProgram.move(theta, start_pos, float(last[0])))
+                    pressurise_s = max(PRESSURISE_S, HumanProgram.move_time(theta, start_pos) + 0.5)
+
             def program_start(t_rig: float) -> None:
                 if set_program is not None:  # the simulated user; a real person needs no cue here
                     from app.engine.human import HumanProgram
@@ -451,7 +484,7 @@ class Station:
                 if spec.scenario == "SC-4" and set_dist is not None:
                     set_dist(0.0, settings.dp_b_bar)
 
-            job = RunJob(spec, ctl, t_end, t_d, program_start, disturb)
+            job = RunJob(spec, ctl, t_end, t_d, program_start, disturb, pressurise_s=pressurise_s)
             name = time.strftime("run-%Y%m%d-%H%M%S") + f"-{int(time.time() * 1e3) % 1000:03d}"
             meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": P_ATM / BAR,
                     "working_pressure_bar": spec.pw_bar, "experiment": "workout", "human": True,
@@ -508,12 +541,27 @@ class Station:
             self._finish_run("stopped")
 
     def clear(self) -> None:
-        """fault → disconnected: acknowledge the fault, drop the backend."""
+        """fault → disconnected: acknowledge the fault, drop the backend (the explicit reset)."""
         with self._lock:
             self._require("clear")
             self._shutdown()
             self.fault_message = ""
+            self.safety.reset()
             self._state = State.DISCONNECTED
+
+    def estop(self, source: str = "API") -> None:
+        """Emergency stop, from any state: latch a fault; the next period writes the safe state.
+
+        Legal everywhere (never a :class:`TransitionError`): pressing it twice,
+        or while disconnected, still leaves a latched fault to clear.
+        """
+        self.safety.trip("estop", f"emergency stop ({source})",
+                         self.engine.last_measurement.t if self.engine and self.engine.last_measurement else math.nan)
+        with self._lock:
+            if self._state != State.FAULT:
+                self.fault_message = f"emergency stop ({source})" if self.safety.fault is None \
+                    else self.safety.fault.message
+                self._state = State.FAULT
 
     def close(self) -> None:
         """Stop everything (server shutdown)."""
@@ -533,7 +581,8 @@ class Station:
         out: dict[str, Any] = {"state": st.value, "allowed": self.allowed(), "run_id": self._run_id,
                                "backend": self.backend.name if self.backend else None,
                                "rig": asdict(self.rig) if self.backend else None,
-                               "fault": self.fault_message, "progress": None, "last_run": self.last_run}
+                               "fault": self.fault_message, "progress": None, "last_run": self.last_run,
+                               "safety": self.safety.status()}
         if self._job is not None:
             out["progress"] = {"kind": "workout", "fraction": self._job.fraction,
                                "phase": "pressurising" if self._job.t_prog is None else "exercising"}
@@ -567,8 +616,9 @@ class Station:
         assert self.backend is not None and self.supervisor is not None
         if hasattr(self.backend, "period"):
             self.backend.period = 1.0 / rate_hz
-        self.engine = Engine(self.backend, self.supervisor, self.clock, rate_hz, on_tick=self._on_tick,
-                             realtime=self.realtime)
+        self.safety.period = 1.0 / rate_hz
+        self.engine = Engine(self.backend, self.supervisor, self.clock, rate_hz, safety=self.safety,
+                             on_tick=self._on_tick, realtime=self.realtime, stall_s=self.stall_s)
         self.engine.start()
 
     def _stop_engine(self) -> None:
@@ -592,6 +642,8 @@ class Station:
                 if self.state == State.FAULT:
                     if self._job is not None:
                         self._finish_run("fault")
+                    if self._proc is not None:
+                        self._abort_procedure("fault")
                     continue
                 if self._job is not None and self._job.done:
                     self._finish_run("complete")
@@ -612,10 +664,13 @@ class Station:
             from app.engine.human import HumanProgram
 
             last = self.live.latest()
-            # the simulated user stops where the handle is; snapping back to neutral
-            # would yank the arm against still-pressurised chambers
-            set_program(HumanProgram.hold(float(last[LIVE_COLUMNS.index("theta")])) if last is not None
-                        else HumanProgram.rest())
+            # the simulated user stops where the handle is, waits for the chambers to vent,
+            # then lowers the arm back to neutral (snapping back would yank it)
+            if last is None:
+                set_program(HumanProgram.rest())
+            else:
+                set_program(HumanProgram.move(float(last[LIVE_COLUMNS.index("theta")]), 0.0, float(last[0]),
+                                              wait_s=1.0))
         metrics: dict[str, Any] | None = None
         result: dict[str, Any] = {"window_s": None}
         if len(job.rows) > 10:
@@ -636,6 +691,8 @@ class Station:
                                       f"metrics need at least {MIN_PARTIAL_WINDOW_S:g} s")
             except ValueError as exc:  # too short a window (stopped early)
                 result = {"window_s": None, "note": str(exc)}
+        if status == "fault":
+            result["fault"] = self._fault_detail()
         if log is not None:
             log.close(status, metrics=metrics)
         if self.sink is not None and self._run_id is not None:
@@ -644,6 +701,22 @@ class Station:
         self._job, self._log = None, None
         if self._state != State.FAULT:
             self._state = State.IDLE
+
+    def _fault_detail(self) -> dict[str, Any]:
+        f = self.safety.fault
+        return f.as_dict() if f is not None else {"code": "engine_error", "message": self.fault_message}
+
+    def _abort_procedure(self, status: str) -> None:
+        """A fault ended the identification: store what it had, leave the engine writing safe outputs."""
+        proc = self._proc
+        proc.cancel()
+        result = {"progress": proc.progress.as_dict(), "fault": self._fault_detail()}
+        if self.sink is not None and self._run_id is not None:
+            self.sink.run_finished(self._run_id, status, None, result)
+        self.last_run = {"run_id": self._run_id, "status": status, "result": result}
+        assert self.supervisor is not None
+        self.supervisor.job = None
+        self._proc = None
 
     def _finish_procedure(self) -> None:
         proc = self._proc

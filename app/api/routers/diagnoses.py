@@ -9,20 +9,23 @@ to see what the tool finds) or stored runs' logs. The report is the run's
 
 from __future__ import annotations
 
+import logging
 import shutil
 import threading
 import traceback
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, HTTPException, Request
 from pydantic import BaseModel, Field
 
-from app.api.deps import StoreDep
+from app.api.auth import ADMIN, AUTH_RESPONSES
+from app.api.deps import JobsDep, StoreDep
+from app.api.jobs import JobRefused
 from app.engine.params import EFFECT_NAMES, ParameterError
 from app.storage import Store
 
-router = APIRouter(prefix="/api/diagnoses", tags=["diagnoses"])
+router = APIRouter(prefix="/api/diagnoses", tags=["diagnoses"], dependencies=[ADMIN], responses=AUTH_RESPONSES)
 EffectName = Literal[
     "inertia", "vane_leakage", "external_leakage", "heat_transfer", "tube_dynamics", "presliding_friction",
     "sensor_bias", "supply_droop", "valve_dynamics",
@@ -68,7 +71,12 @@ class DiagnosisStarted(BaseModel):
     status: Literal["running"] = "running"
 
 
-def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, sources: list[Path]) -> None:
+log = logging.getLogger(__name__)
+
+
+def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, sources: list[Path],
+          stop: threading.Event) -> None:
+    from app.engine.diagnosis.core import Cancelled
     from app.engine.diagnosis.protocol import run_protocol
     from app.engine.diagnosis.run import diagnose_dir
     from app.engine.diagnosis.suite import MAGNITUDES, perturbed
@@ -79,26 +87,32 @@ def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, source
             p = req.protocol
             rig = perturbed(p.seed, p.param_error) if p.param_error > 0 else PlantParams()
             rig = rig.with_effects(**{e: MAGNITUDES[e][p.magnitude - 1] for e in p.effects})
-            run_protocol(rig, seed=p.seed, scale=p.scale, outdir=logdir)
+            run_protocol(rig, seed=p.seed, scale=p.scale, outdir=logdir, stop=stop)
         else:
             logdir.mkdir(parents=True, exist_ok=True)
             for src in sources:
                 for suffix in (".csv", ".json"):
                     shutil.copyfile(src.with_suffix(suffix), logdir / (src.stem + suffix))
-        report = diagnose_dir(logdir, adapter="station", held_out=req.held_out)
+        report = diagnose_dir(logdir, adapter="station", held_out=req.held_out, stop=stop)
         v = report["verdict"]
         hf = report["how_far"]
         # metrics are numbers (the runs table's contract); the verdict's names are in the report
         store.run_finished(run_id, "complete", {"effects_found": float(len(v["effects"])), "e_before": hf["e_before"],
                                                 "e_after": hf["e_after"], "e_floor": hf["e_floor"],
                                                 "unexplained_share": hf["unexplained_share"]}, report)
+    except Cancelled as exc:
+        store.run_finished(run_id, "cancelled", None, {"error": f"{exc} (the server stopped)"})
     except Exception as exc:  # the job's failure is its stored result, not a lost thread
-        store.run_finished(run_id, "failed", None, {"error": str(exc), "trace": traceback.format_exc(limit=3)})
+        try:
+            store.run_finished(run_id, "failed", None, {"error": str(exc), "trace": traceback.format_exc(limit=3)})
+        except Exception:  # the store itself is gone: the log is all that is left
+            log.exception("diagnosis %d failed and could not be recorded", run_id)
 
 
 @router.post("", response_model=DiagnosisStarted, status_code=202,
+             responses={409: {"description": "A diagnosis is already running, or the server is stopping"}},
              summary="Start a gap diagnosis (protocol on the simulator, or stored runs); poll GET /api/runs/{id}")
-def start(req: DiagnosisRequest, store: StoreDep, request: Request) -> DiagnosisStarted:
+def start(req: DiagnosisRequest, store: StoreDep, jobs: JobsDep, request: Request) -> DiagnosisStarted:
     if (req.protocol is None) == (req.run_ids is None):
         raise ParameterError("body = request: give exactly one of protocol or run_ids")
     sources: list[Path] = []
@@ -112,10 +126,25 @@ def start(req: DiagnosisRequest, store: StoreDep, request: Request) -> Diagnosis
         sources.append(path)
     if len({s.stem for s in sources}) != len(sources):
         raise ParameterError("run_ids: two runs share a log name")
+    if req.held_out:
+        from app.engine.diagnosis.protocol import VISIBLE
+
+        names = {s.stem for s in sources} or {f"{k}-{r}" for k in VISIBLE for r in (1, 2)}
+        unknown = [h for h in req.held_out if h not in names]
+        if unknown:
+            raise ParameterError(f"held_out = {unknown[0]!r}: no log of that name; have {', '.join(sorted(names))}")
+        if set(req.held_out) >= names:
+            raise ParameterError("held_out: every log is held out; none is left to fit on")
+    busy = jobs.refusal()
+    if busy:
+        raise HTTPException(409, busy)
     data_dir = Path(request.app.state.station.data_dir)
     spec: dict[str, Any] = req.model_dump()
     run_id = store.run_started("diagnosis", spec, "")
     logdir = data_dir / "diagnoses" / f"diagnosis-{run_id}"
-    threading.Thread(target=_work, args=(store, run_id, req, logdir, sources), name=f"diagnosis-{run_id}",
-                     daemon=True).start()
+    try:
+        jobs.start(f"diagnosis-{run_id}", lambda stop: _work(store, run_id, req, logdir, sources, stop))
+    except JobRefused as exc:  # lost a race with another request: the stored run says why
+        store.run_finished(run_id, "cancelled", None, {"error": str(exc)})
+        raise HTTPException(409, str(exc)) from exc
     return DiagnosisStarted(run_id=run_id)

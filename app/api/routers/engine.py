@@ -7,6 +7,7 @@ from typing import Any
 
 from fastapi import APIRouter, Query
 
+from app.api.auth import ADMIN, AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import StationDep, StoreDep
 from app.api.models import (
     ConnectRequest,
@@ -24,7 +25,8 @@ from app.engine.params import ParameterError
 from app.engine.station import CONTROL_RATE_HZ, LIVE_COLUMNS, Rig, RunSpec
 
 router = APIRouter(prefix="/api", tags=["engine"])
-CONFLICT: dict[int | str, dict[str, Any]] = {409: {"description": "Illegal in the current state (says why)"}}
+CONFLICT: dict[int | str, dict[str, Any]] = {409: {"description": "Illegal in the current state (says why)"},
+                                             **AUTH_RESPONSES}
 
 
 def _friction_result(data: Any, res: Any) -> dict[str, Any]:
@@ -46,25 +48,29 @@ def health(station: StationDep) -> Health:
     return Health(**station.health())
 
 
-@router.get("/engine", response_model=EngineStatus, summary="State, allowed actions, progress")
+@router.get("/engine", dependencies=[READ], responses=AUTH_RESPONSES, response_model=EngineStatus,
+            summary="State, allowed actions, progress")
 def status(station: StationDep) -> EngineStatus:
     return EngineStatus(**station.status())
 
 
-@router.post("/engine/connect", response_model=EngineStatus, responses=CONFLICT, summary="disconnected → idle")
+@router.post("/engine/connect", dependencies=[THERAPIST], response_model=EngineStatus, responses=CONFLICT,
+             summary="disconnected → idle")
 def connect(station: StationDep, body: ConnectRequest | None = None) -> EngineStatus:
     body = body or ConnectRequest()
     station.connect(Rig(body.rig, body.cylinder))
     return EngineStatus(**station.status())
 
 
-@router.post("/engine/disconnect", response_model=EngineStatus, responses=CONFLICT, summary="idle → disconnected")
+@router.post("/engine/disconnect", dependencies=[THERAPIST], response_model=EngineStatus, responses=CONFLICT,
+             summary="idle → disconnected")
 def disconnect(station: StationDep) -> EngineStatus:
     station.disconnect()
     return EngineStatus(**station.status())
 
 
-@router.post("/engine/start", response_model=Started, responses=CONFLICT, summary="idle → running: a scenario run")
+@router.post("/engine/start", dependencies=[THERAPIST], response_model=Started, responses=CONFLICT,
+             summary="idle → running: a scenario run")
 def start(req: RunRequest, station: StationDep, store: StoreDep) -> Started:
     person = req.person
     if req.session_id is not None:
@@ -91,9 +97,9 @@ def start(req: RunRequest, station: StationDep, store: StoreDep) -> Started:
     return Started(run_id=run_id, status=EngineStatus(**station.status()))
 
 
-@router.post("/engine/estimate/rotary", response_model=Started, responses=CONFLICT,
+@router.post("/engine/estimate/rotary", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
              summary="idle → identifying: rotary friction identification (thesis 3.2.4, 500 Hz)")
-@router.post("/engine/estimate", response_model=Started, responses=CONFLICT,
+@router.post("/engine/estimate", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
              summary="idle → identifying: rotary friction identification (thesis 3.2.4, 500 Hz)")
 def estimate(req: RotaryIdentRequest, station: StationDep) -> Started:
     from app.engine.ident.gui_rules import RotaryInputs
@@ -104,7 +110,7 @@ def estimate(req: RotaryIdentRequest, station: StationDep) -> Started:
                      "rotary", req.model_dump())
 
 
-@router.post("/engine/estimate/linear", response_model=Started, responses=CONFLICT,
+@router.post("/engine/estimate/linear", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
              summary="idle → identifying: linear friction identification (thesis 3.2.4, 200 Hz, linear rig)")
 def estimate_linear(req: LinearIdentRequest, station: StationDep) -> Started:
     from app.engine.ident.gui_rules import LinearInputs
@@ -115,7 +121,7 @@ def estimate_linear(req: LinearIdentRequest, station: StationDep) -> Started:
                      "linear", req.model_dump())
 
 
-@router.post("/engine/estimate/dcv", response_model=Started, responses=CONFLICT,
+@router.post("/engine/estimate/dcv", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
              summary="idle → identifying: directional-valve CPR map and flow-model fit (thesis 3.2.3, 4.1; cpr rig)")
 def estimate_dcv(req: DCVIdentRequest, station: StationDep) -> Started:
     from dataclasses import asdict
@@ -155,7 +161,7 @@ def estimate_dcv(req: DCVIdentRequest, station: StationDep) -> Started:
     return Started(run_id=run_id, status=EngineStatus(**station.status()))
 
 
-@router.post("/engine/tune/pid", response_model=Started, responses=CONFLICT,
+@router.post("/engine/tune/pid", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
              summary="idle → identifying: frequency-response autotune of one PRV loop (thesis 3.6.2; rotary rig)")
 def tune_pid(req: PIDTuneRequest, station: StationDep) -> Started:
     from dataclasses import asdict
@@ -193,20 +199,29 @@ def _identify(station: StationDep, proc: Any, estimator: Any, rig: str, spec: di
     return Started(run_id=run_id, status=EngineStatus(**station.status()))
 
 
-@router.post("/engine/stop", response_model=EngineStatus, responses=CONFLICT,
+@router.post("/engine/stop", dependencies=[THERAPIST], response_model=EngineStatus, responses=CONFLICT,
              summary="running/identifying → idle, keeping what was recorded")
 def stop(station: StationDep) -> EngineStatus:
     station.stop()
     return EngineStatus(**station.status())
 
 
-@router.post("/engine/clear", response_model=EngineStatus, responses=CONFLICT, summary="fault → disconnected")
+@router.post("/engine/estop", response_model=EngineStatus,
+             summary="Emergency stop from any state: safe outputs within one control period, fault latched")
+def estop(station: StationDep) -> EngineStatus:
+    station.estop("API")
+    return EngineStatus(**station.status())
+
+
+@router.post("/engine/clear", dependencies=[THERAPIST], response_model=EngineStatus, responses=CONFLICT,
+             summary="fault → disconnected")
 def clear(station: StationDep) -> EngineStatus:
     station.clear()
     return EngineStatus(**station.status())
 
 
-@router.get("/live", response_model=LiveData, summary="Samples newer than `since` from the live buffer")
+@router.get("/live", dependencies=[READ], responses=AUTH_RESPONSES, response_model=LiveData,
+            summary="Samples newer than `since` from the live buffer")
 def live(station: StationDep, since: float = Query(-1.0, ge=-1.0, le=1e9, description="s"),
          max_rows: int = Query(2000, ge=1, le=15000)) -> LiveData:
     rows = station.live.since(since, max_rows)

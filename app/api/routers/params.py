@@ -6,12 +6,13 @@ from typing import Literal
 
 from fastapi import APIRouter, HTTPException
 
+from app.api.auth import ADMIN, AUTH_RESPONSES, READ
 from app.api.deps import IdPath, StoreDep
 from app.api.models import FieldState, FormCheckIn, FormState, ParamSet, ParamSetIn
 from app.engine import paramsets
 from app.engine.ident.gui_rules import GuidedForm
 
-router = APIRouter(prefix="/api", tags=["parameters"])
+router = APIRouter(prefix="/api", tags=["parameters"], dependencies=[READ], responses=AUTH_RESPONSES)
 
 
 @router.post("/forms/{rig}", response_model=FormState, summary="Replay typed values through a thesis GUI form")
@@ -31,7 +32,8 @@ def check_form(rig: Literal["rotary", "linear"], body: FormCheckIn) -> FormState
     return FormState(fields=fields, message=message, ready=form.phase == "ready", refused=refused)
 
 
-@router.post("/params", response_model=ParamSet, status_code=201, summary="Validate and store a parameter set")
+@router.post("/params", dependencies=[ADMIN], response_model=ParamSet, status_code=201,
+             summary="Validate and store a parameter set")
 def save_params(body: ParamSetIn, store: StoreDep) -> ParamSet:
     values = paramsets.validate(body.kind, dict(body.values), partial=True)  # ParameterError → 422
     row = store.param_set(store.save_params(body.kind, body.name, values))

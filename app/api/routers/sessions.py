@@ -6,17 +6,18 @@ from typing import Any
 
 from fastapi import APIRouter, HTTPException, Query
 
+from app.api.auth import AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import IdPath, StoreDep
 from app.api.models import Session, SessionIn
 
-router = APIRouter(prefix="/api/sessions", tags=["sessions"])
+router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[READ], responses=AUTH_RESPONSES)
 
 
 def _session(store: StoreDep, row: dict[str, Any]) -> Session:
     return Session(**row, runs=[r["id"] for r in store.runs(1000, 0, session_id=row["id"])])
 
 
-@router.post("", response_model=Session, status_code=201, summary="Open a session")
+@router.post("", dependencies=[THERAPIST], response_model=Session, status_code=201, summary="Open a session")
 def open_session(body: SessionIn, store: StoreDep) -> Session:
     row = store.session(store.add_session(body.person, body.notes))
     assert row is not None

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -237,12 +238,23 @@ def channel_scales(family: Family, preps: list[Any]) -> dict[str, float]:
     return out
 
 
+class Cancelled(Exception):
+    """The diagnosis was asked to stop (``stop`` set); nothing was concluded."""
+
+
+def _check(stop: threading.Event | None) -> None:
+    if stop is not None and stop.is_set():
+        raise Cancelled("the diagnosis was stopped before it finished")
+
+
 def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: dict[str, float] | None = None,
-        scales: dict[str, float] | None = None, starts: list[dict[str, float]] | None = None) -> Fit:
+        scales: dict[str, float] | None = None, starts: list[dict[str, float]] | None = None,
+        stop: threading.Event | None = None) -> Fit:
     """Bounded least squares of the baseline (plus ``effects``) on ``preps``.
 
     ``starts`` (several starting points) overrides ``start``: the descent
-    starts from the one with the lowest cost.
+    starts from the one with the lowest cost. ``stop``, once set, ends the
+    fit at its next cost evaluation with :class:`Cancelled`.
     """
     all_specs = _specs(family, effects)
     first = (starts or [start or {}])[0]
@@ -256,6 +268,7 @@ def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: 
     prefetch = getattr(family, "prefetch", None)
 
     def resid(x: np.ndarray) -> np.ndarray:
+        _check(stop)
         v = fixed | _from_x(specs, x)
         if prefetch is not None:
             prefetch(preps, [v], effects)
@@ -442,7 +455,7 @@ class Candidate:
 
 
 def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_sc: Scores, effects: tuple[str, ...],
-              norm: _Norm, blocks: int, scales: dict[str, float]) -> Candidate:
+              norm: _Norm, blocks: int, scales: dict[str, float], stop: threading.Event | None = None) -> Candidate:
     # from the effect switched off (never worse than the reference) and from its typical size
     new = [p for e in effects for p in family.effect(e) if p.name not in ref.params]
     off = ref.params | {p.name: p.x0 if p.off is None else p.off for p in new}
@@ -450,8 +463,9 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     starts = [off, typ] if off != typ else [off]
     points = int(getattr(family, "grid_points", 0))
     if points and new:
+        _check(stop)
         starts.append(_grid_start(family, calib, effects, ref.params, new, points, scales))
-    f = fit(family, calib, effects, scales=scales, starts=starts)
+    f = fit(family, calib, effects, scales=scales, starts=starts, stop=stop)
     sc = score(family, held, f, blocks)
     gc = gap_closure(ref_sc, sc, norm)
     ci = bootstrap_gc(ref_sc, sc, norm)
@@ -508,7 +522,7 @@ def _rank_key(c: Candidate) -> tuple[bool, bool, float]:
 
 def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
              candidates: Sequence[str] | None = None, protocol: dict[str, list[str]] | None = None,
-             blocks: int | None = None) -> dict[str, Any]:
+             blocks: int | None = None, stop: threading.Event | None = None) -> dict[str, Any]:
     """The full diagnosis; returns the report (JSON-able).
 
     Args:
@@ -520,6 +534,8 @@ def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
             separating-experiment advice).
         blocks: Time blocks per held-out experiment for the bootstrap
             (default 1 when ≥ 4 experiments are held out, else 8).
+        stop: Once set, the diagnosis ends at its next cost evaluation with
+            :class:`Cancelled` (a server shutting down must not leave it running).
     """
     if not calib_exps or not held_exps:
         raise ValueError("need at least one calibration and one held-out experiment")
@@ -537,12 +553,12 @@ def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     floor = np.array([float(np.sqrt(np.mean([family.noise(p)[c] ** 2 for p in held]))) for c in family.channels])
     norm = _Norm(spread, floor)
 
-    base = fit(family, calib, (), scales=scales)
+    base = fit(family, calib, (), scales=scales, stop=stop)
     base_sc = score(family, held, base, blocks)
     e_base, nr_base = _e(base_sc, norm)
     e_floor = float((floor / spread).mean())
 
-    singles = [_evaluate(family, calib, held, base, base_sc, (c,), norm, blocks, scales) for c in cands]
+    singles = [_evaluate(family, calib, held, base, base_sc, (c,), norm, blocks, scales, stop) for c in cands]
     singles.sort(key=_rank_key, reverse=True)
 
     selected: list[Candidate] = []
@@ -551,7 +567,7 @@ def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     while pool and len(selected) < MAX_EFFECTS:
         if selected:
             prev = tuple(s.effect for s in selected)
-            pool = [_evaluate(family, calib, held, ref, ref_sc, (*prev, c.effect), norm, blocks, scales)
+            pool = [_evaluate(family, calib, held, ref, ref_sc, (*prev, c.effect), norm, blocks, scales, stop)
                     for c in pool]
             pool.sort(key=_rank_key, reverse=True)
         best = pool[0]

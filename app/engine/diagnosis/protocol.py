@@ -13,12 +13,14 @@ experiments can be held out).
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from app.engine.diagnosis.core import Cancelled
 from app.engine.diagnosis.logs import INPUTS, MEASURED, Experiment, write_log
 from app.engine.human import HumanProgram, isotonic
 from app.engine.params import PlantParams
@@ -170,7 +172,8 @@ def _experiment(name: str, log: np.ndarray, meta: dict[str, object]) -> Experime
 
 
 def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: int = 2, scale: float = 1.0,
-                 kinds: Sequence[str] | None = None, outdir: str | Path | None = None) -> list[Experiment]:
+                 kinds: Sequence[str] | None = None, outdir: str | Path | None = None,
+                 stop: threading.Event | None = None) -> list[Experiment]:
     """Run the whole protocol on a simulated rig.
 
     Args:
@@ -180,6 +183,8 @@ def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: 
         scale: Duration factor.
         kinds: Experiments to run (default all of :data:`VISIBLE`).
         outdir: Also write every log there in the station's format.
+        stop: Once set, the protocol ends before its next experiment with
+            :class:`~app.engine.diagnosis.core.Cancelled`.
 
     Returns:
         The experiments, named ``KIND-REP`` (e.g. ``hold_closed-2``).
@@ -193,6 +198,8 @@ def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: 
     for rep in range(repetitions):
         sch = {s.name: s for s in schedules(rep, scale)}
         for j, kind in enumerate(kinds):
+            if stop is not None and stop.is_set():
+                raise Cancelled("the protocol was stopped before it finished")
             sd = seed * 1000 + rep * 100 + j
             name = f"{kind}-{rep + 1}"
             if kind == "isotonic":

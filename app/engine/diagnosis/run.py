@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +51,8 @@ def _split(exps: list[Experiment], held_out: list[str] | None) -> tuple[list[Exp
     return exps[:-n_held], exps[-n_held:]
 
 
-def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] | None = None) -> dict[str, Any]:
+def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] | None = None,
+                 stop: threading.Event | None = None) -> dict[str, Any]:
     """The report for the logs in ``logdir``.
 
     Args:
@@ -58,6 +60,8 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
         adapter: ``station`` (the fixed NAME.csv + NAME.json format),
             ``chamber_leak`` or ``emps`` (refdata adapters), or ``auto``.
         held_out: Experiment names withheld from fitting.
+        stop: Once set, the diagnosis ends with
+            :class:`~app.engine.diagnosis.core.Cancelled`.
 
     Returns:
         The report (one per chamber under ``"reports"`` for ``chamber_leak``,
@@ -70,12 +74,12 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     if kind == "emps":
         exps = [read_emps(p) for p in sorted(d.glob("*.mat"))]
         calib, held = _split(exps, held_out)
-        return diagnose(DriveFamily(), calib, held, protocol=PROTOCOL) | {"adapter": "emps"}
+        return diagnose(DriveFamily(), calib, held, protocol=PROTOCOL, stop=stop) | {"adapter": "emps"}
     if kind == "chamber_leak":
         reports = {}
         for p in sorted(d.glob("*.csv")):
             a, b = split_time(read_chamber_leak(p))
-            reports[p.stem] = diagnose(ChamberFamily(), [a], [b], protocol=PROTOCOL)
+            reports[p.stem] = diagnose(ChamberFamily(), [a], [b], protocol=PROTOCOL, stop=stop)
         return {"adapter": "chamber_leak", "reports": reports}
     exps = read_logdir(d)  # refuses malformed logs with the problem named
     linear = [e.name for e in exps if e.meta["rig"] != "rotary"]
@@ -83,7 +87,7 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
         raise LogFormatError(f"{d}: {', '.join(linear)} come from the linear rig; the replay family covers "
                              "the rotary rig (diagnose linear-rig logs in a directory of their own once it does)")
     calib, held = _split_station(exps, held_out)
-    return diagnose(RotaryFamily(), calib, held, protocol=PROTOCOL) | {"adapter": "station"}
+    return diagnose(RotaryFamily(), calib, held, protocol=PROTOCOL, stop=stop) | {"adapter": "station"}
 
 
 def _split_station(exps: list[Experiment], held_out: list[str] | None) -> tuple[list[Experiment], list[Experiment]]:

@@ -78,6 +78,21 @@ class SimulatedRig(HardwareInterface):
         """PRV-exit pressure disturbances [bar]."""
         self.sim.set_disturbance(dp_a_bar, dp_b_bar)
 
+    def set_supply(self, p_supply_bar: float) -> None:
+        """Supply pressure from now on [bar abs] (fault injection: a lost or failing supply).
+
+        Raises:
+            ParameterError: ``p_supply_bar`` is not above atmospheric or beyond 12 bar.
+        """
+        from dataclasses import replace
+
+        from app.engine.physics import plant as pl
+
+        params = replace(self.params, supply=replace(self.params.supply, p_supply_bar=p_supply_bar))
+        self.params = params
+        self.sim.params = params
+        self.sim.kernel = pl.build_kernel(params)
+
     def read(self) -> Measurement:
         """Integrate up to now, then sample."""
         m = self.sim.advance_and_measure(self.clock.now() - self._t0, self.period)

@@ -1,0 +1,207 @@
+"""Issue 7 item 6: who may drive the station — bind rule, tokens and roles, CORS, body limit, no secrets in logs."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from pydantic import ValidationError
+
+from app.api.main import create_app
+from app.api.settings import Settings
+from app.cli import main as cli_main
+
+ADMIN = "adm-" + "a1b2c3d4e5f6a7b8c9d0"
+THERAPIST = "thr-" + "0f9e8d7c6b5a4f3e2d1c"
+PUBLIC = {("GET", "/api/health"), ("POST", "/api/engine/estop"), ("GET", "/api/auth")}
+THERAPIST_OK = {("POST", "/api/engine/connect"), ("POST", "/api/engine/disconnect"), ("POST", "/api/engine/start"),
+                ("POST", "/api/engine/stop"), ("POST", "/api/engine/clear"), ("POST", "/api/sessions")}
+
+
+def _bearer(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+@pytest.fixture()
+def secured(tmp_path: Path) -> Iterator[TestClient]:
+    s = Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False, host="0.0.0.0",
+                 admin_token=ADMIN, therapist_token=THERAPIST)  # type: ignore[arg-type]
+    with TestClient(create_app(s)) as c:
+        yield c
+
+
+def _api_routes(c: TestClient) -> list[tuple[str, str]]:
+    # from the OpenAPI document, so an endpoint added later is checked without editing this test
+    paths = c.app.openapi()["paths"]  # type: ignore[attr-defined]
+    return [(m.upper(), p) for p, ops in paths.items() if p.startswith("/api") for m in ops]
+
+
+def _concrete(path: str) -> str:
+    for name, value in (("{run_id}", "1"), ("{set_id}", "1"), ("{session_id}", "1"), ("{rig}", "rotary")):
+        path = path.replace(name, value)
+    return path
+
+
+# ------------------------------------------------------------------ the bind rule
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "192.168.1.20", "::"])
+def test_a_non_local_bind_without_tokens_refuses_to_start(host: str) -> None:
+    with pytest.raises(ValidationError, match="without authentication"):
+        Settings(host=host)
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "localhost", "::1", "127.0.0.2", "::ffff:127.0.0.1"])
+def test_loopback_binds_need_no_token(host: str) -> None:
+    assert not Settings(host=host).auth_enabled
+
+
+@pytest.mark.parametrize("kw, msg", [
+    ({"admin_token": "short"}, "at least 16"),
+    ({"admin_token": " " + ADMIN}, "surrounding spaces"),
+    ({"admin_token": ADMIN, "therapist_token": ADMIN}, "must differ"),
+    ({"cors_origins": ["*"]}, "any web page"),
+])
+def test_weak_settings_are_refused_without_echoing_the_secret(kw: dict[str, Any], msg: str) -> None:
+    with pytest.raises(ValidationError, match=msg) as info:
+        Settings(**kw)
+    for v in kw.values():
+        if isinstance(v, str):
+            assert v.strip() not in str(info.value)
+
+
+def test_cwrr_serve_on_all_interfaces_without_a_token_exits_with_the_reason(
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("CWRR_ADMIN_TOKEN", raising=False)
+    monkeypatch.delenv("CWRR_THERAPIST_TOKEN", raising=False)
+    assert cli_main(["serve", "--host", "0.0.0.0", "--port", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "without authentication" in err and "CWRR_ADMIN_TOKEN" in err
+
+
+def test_tokens_come_from_the_environment_and_never_show_in_repr(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CWRR_ADMIN_TOKEN", ADMIN)
+    s = Settings(host="0.0.0.0")
+    assert s.auth_enabled and s.admin_token is not None and s.admin_token.get_secret_value() == ADMIN
+    assert ADMIN not in repr(s) and ADMIN not in str(s.model_dump())
+
+
+# ------------------------------------------------------------------ tokens and roles
+
+
+def test_every_api_endpoint_but_health_estop_and_auth_refuses_a_caller_without_a_token(
+        secured: TestClient) -> None:
+    routes = _api_routes(secured)
+    assert len(routes) > 20
+    for method, path in routes:
+        r = secured.request(method, _concrete(path), json={})
+        if (method, path) in PUBLIC:
+            assert r.status_code == 200, (method, path, r.text)
+        else:
+            assert r.status_code == 401, (method, path, r.status_code)
+            assert r.headers.get("www-authenticate") == "Bearer"
+            assert "Bearer" in r.json()["detail"]
+        # a wrong token is no token
+        if (method, path) not in PUBLIC:
+            wrong = _bearer(ADMIN[:-1] + "x")
+            assert secured.request(method, _concrete(path), json={}, headers=wrong).status_code == 401
+
+
+def test_a_refused_motion_command_moves_nothing(secured: TestClient) -> None:
+    a = _bearer(ADMIN)
+    assert secured.post("/api/engine/connect", headers=a).json()["state"] == "idle"
+    assert secured.post("/api/engine/start", json={}).status_code == 401
+    assert secured.get("/api/engine", headers=a).json()["state"] == "idle"
+    assert secured.get("/api/runs", headers=a).json() == []
+
+
+def test_a_therapist_runs_exercises_but_only_an_admin_identifies_tunes_and_stores_parameters(
+        secured: TestClient) -> None:
+    t, a = _bearer(THERAPIST), _bearer(ADMIN)
+    for method, path in _api_routes(secured):
+        if method != "POST" or (method, path) in PUBLIC or path == "/api/forms/{rig}":
+            continue
+        r = secured.post(_concrete(path), json={}, headers=t)
+        if (method, path) in THERAPIST_OK:
+            assert r.status_code != 403, (path, r.text)
+        else:
+            assert r.status_code == 403 and "admin role" in r.json()["detail"], (path, r.status_code)
+    # and reading is open to both
+    for h in (t, a):
+        assert secured.get("/api/runs", headers=h).status_code == 200
+        assert secured.post("/api/forms/rotary", json={"values": {}}, headers=h).status_code == 200
+    assert secured.get("/api/auth", headers=t).json() == {"required": True, "role": "therapist"}
+    assert secured.get("/api/auth", headers=a).json() == {"required": True, "role": "admin"}
+    assert secured.get("/api/auth").json() == {"required": True, "role": None}
+
+
+def test_a_therapist_token_drives_a_workout_end_to_end(secured: TestClient) -> None:
+    t = _bearer(THERAPIST)
+    assert secured.post("/api/engine/connect", headers=t).json()["state"] == "idle"
+    r = secured.post("/api/engine/start", json={"scenario": "SC-1"}, headers=t)
+    assert r.status_code == 200, r.text
+    assert r.json()["status"]["state"] == "running"
+    assert secured.post("/api/engine/stop", headers=t).json()["state"] == "idle"
+
+
+def test_the_emergency_stop_needs_no_token(secured: TestClient) -> None:
+    secured.post("/api/engine/connect", headers=_bearer(ADMIN))
+    r = secured.post("/api/engine/estop")
+    assert r.status_code == 200 and r.json()["state"] == "fault"
+    assert r.json()["safety"]["fault"]["code"] == "estop"
+
+
+def test_without_tokens_a_remote_caller_is_refused_even_if_the_server_was_started_by_hand(
+        tmp_path: Path) -> None:
+    # uvicorn started directly on 0.0.0.0 bypasses Settings' bind rule; the requests themselves are checked
+    app = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))
+    with TestClient(app, client=("10.1.2.3", 40000)) as remote:
+        assert remote.get("/api/engine").status_code == 403
+        assert "this machine only" in remote.post("/api/engine/connect").json()["detail"]
+        assert remote.get("/api/health").status_code == 200
+        assert remote.get("/api/auth").json() == {"required": False, "role": None}
+    with TestClient(app, client=("127.0.0.1", 40000)) as local:
+        assert local.get("/api/engine").status_code == 200
+        assert local.get("/api/auth").json() == {"required": False, "role": "admin"}
+
+
+# ------------------------------------------------------------------ CORS, body size, logs
+
+
+def test_cors_is_closed_by_default_and_open_only_to_configured_origins(tmp_path: Path) -> None:
+    origin = {"Origin": "http://evil.example", "Access-Control-Request-Method": "POST"}
+    with TestClient(create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))) as c:
+        assert "access-control-allow-origin" not in c.get("/api/health", headers=origin).headers
+        assert "access-control-allow-origin" not in c.options("/api/engine/start", headers=origin).headers
+    s = Settings(data_dir=str(tmp_path / "b"), viser_port=0, auto_connect=False, cors_origins=["http://lab.example"])
+    with TestClient(create_app(s)) as c:
+        ok = {"Origin": "http://lab.example", "Access-Control-Request-Method": "POST"}
+        assert c.options("/api/engine/start", headers=ok).headers["access-control-allow-origin"] == "http://lab.example"
+        assert "access-control-allow-origin" not in c.options("/api/engine/start", headers=origin).headers
+
+
+def test_an_oversized_body_gets_413_and_stores_nothing(tmp_path: Path) -> None:
+    s = Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False, max_body_bytes=4096)
+    with TestClient(create_app(s)) as c:
+        big = {"kind": "gains", "name": "x", "values": {}, "pad": "z" * 10_000}
+        r = c.post("/api/params", json=big)
+        assert r.status_code == 413 and "4096" in r.json()["detail"]
+        # a chunked body declares no length; it is counted as it arrives
+        r = c.post("/api/sessions", content=iter([b'{"person": "p1", "notes": "', b"n" * 8000, b'"}']),
+                   headers={"content-type": "application/json"})
+        assert r.status_code == 413
+        assert c.get("/api/params").json() == [] and c.get("/api/sessions").json() == []
+        assert c.post("/api/sessions", json={"person": "p1"}).status_code == 201
+
+
+def test_tokens_never_reach_a_log(secured: TestClient, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.DEBUG)
+    secured.get("/api/engine", headers=_bearer(ADMIN))
+    secured.post("/api/engine/connect", headers=_bearer(THERAPIST))
+    secured.get("/api/engine", headers=_bearer("wrong-token-0123456789"))
+    text = caplog.text + repr(secured.app.state.settings)  # type: ignore[attr-defined]
+    assert ADMIN not in text and THERAPIST not in text

@@ -1,0 +1,300 @@
+"""Issue 7: the safety supervisor, fault injection, the watchdog and the emergency stop.
+
+Every injected fault must end in the fault state's command within one control
+period of its detection, with the run log intact; detection latency is
+bounded per fault (immediate for NaN, jumps and glitches; the configured
+persistence time for stuck channels and supply loss).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from app.engine.constants import BAR, P_ATM
+from app.engine.control.config import ControllerConfig
+from app.engine.control.interaction import InteractionController
+from app.engine.hardware.base import Command, Measurement
+from app.engine.hardware.faults import FaultyRig
+from app.engine.hardware.sim import SimulatedRig
+from app.engine.human import isotonic
+from app.engine.loop import Engine, SimClock, WallClock
+from app.engine.params import ParameterError
+from app.engine.runlog import RunLogWriter
+from app.engine.safety import VENT_COMMAND, SafetyLimits, SafetySupervisor
+
+PERIOD = 0.005
+AT = 2.5  # fault time [s]: mid-motion of the isotonic program, chambers at P_w
+
+
+def _meas(t: float = 0.0, p_a: float = 3.0, p_b: float = 3.0, theta: float = 0.0, torque: float = 0.1,
+          p_s: float = 8.0) -> Measurement:
+    return Measurement(t, p_a, p_b, p_s, theta, 0.0, torque)
+
+
+# ---------------------------------------------------------------- the stage alone
+
+def test_commands_are_clipped_to_the_pressure_limit_and_slew_limited() -> None:
+    s = SafetySupervisor(SafetyLimits(p_max_bar=5.0, slew_bar_s=100.0), PERIOD)
+    out = s.apply(Command(9.0, -1.0, 12.0, 5.0), _meas())
+    assert (out.z_a, out.z_b, out.u_a) == (5.0, 0.0, 10.0)
+    # 100 bar/s × 5 ms = 0.5 bar per period
+    out = s.apply(Command(0.0, 4.0, 0.0, 10.0), _meas(0.005))
+    assert out.z_a == pytest.approx(4.5) and out.z_b == pytest.approx(0.5)
+    assert s.fault is None
+
+
+def test_the_no_action_zone_holds_equal_pressures_only_against_outward_commands() -> None:
+    s = SafetySupervisor(SafetyLimits(rom_deg=270.0, soft_margin_deg=10.0, slew_bar_s=1e3), PERIOD)
+    near_ccw = math.radians(130.0)
+    out = s.apply(Command(3.0, 1.0, 0.0, 10.0), _meas(theta=near_ccw))  # p_a > p_b drives CCW: further out
+    assert out.z_a == out.z_b == 3.0 and s.no_action
+    out = s.apply(Command(1.0, 3.0, 0.0, 10.0), _meas(0.005, theta=near_ccw))  # back towards neutral: passes
+    assert (out.z_a, out.z_b) == (1.0, 3.0) and not s.no_action
+    assert s.fault is None
+
+
+@pytest.mark.parametrize(("meas", "code"), [
+    (_meas(p_a=math.nan), "sensor_nan"),
+    (_meas(p_b=15.0), "sensor_range"),
+    (_meas(theta=math.radians(150.0)), "sensor_range"),
+    (_meas(torque=9.95), "torque_saturation"),
+    (_meas(torque=-8.5), "torque_limit"),
+])
+def test_an_implausible_measurement_latches_a_fault_and_the_safe_state_at_once(meas: Measurement, code: str) -> None:
+    s = SafetySupervisor(period=PERIOD)
+    assert s.apply(Command(2.0, 2.0, 0.0, 10.0), meas) == VENT_COMMAND
+    assert s.fault is not None and s.fault.code == code and s.fault.t == 0.0
+    # latched: a good measurement does not release it
+    assert s.apply(Command(2.0, 2.0, 0.0, 10.0), _meas(0.005)) == VENT_COMMAND
+    s.reset()
+    assert s.apply(Command(2.0, 2.0, 0.0, 10.0), _meas(0.01)) == Command(2.0, 2.0, 0.0, 10.0)
+
+
+def test_a_nan_command_is_a_controller_fault_not_a_clipped_value() -> None:
+    s = SafetySupervisor(period=PERIOD)
+    assert s.apply(Command(math.nan, 2.0, 0.0, 10.0), _meas()) == VENT_COMMAND
+    assert s.fault is not None and s.fault.code == "controller_nan" and s.fault.channel == "z_a"
+
+
+def test_the_first_fault_is_kept_as_the_cause_and_trip_works_from_another_thread() -> None:
+    s = SafetySupervisor(period=PERIOD)
+    th = threading.Thread(target=s.trip, args=("estop", "emergency stop (test)"))
+    th.start()
+    th.join()
+    s.apply(Command(2.0, 2.0, 0.0, 10.0), _meas(p_a=math.nan))
+    assert s.fault is not None and s.fault.code == "estop" and s.faults_total == 1
+
+
+@pytest.mark.parametrize(("kw", "words"), [
+    ({"p_max_bar": 9.0}, "p_max_bar"),
+    ({"torque_max_nm": 12.0}, "torque_max_nm"),
+    ({"p_range_bar": (5.0, 1.0)}, "p_range_bar"),
+    ({"overruns_max": 0}, "overruns_max"),
+])
+def test_bad_limits_are_refused_with_the_field_named(kw: dict, words: str) -> None:
+    with pytest.raises(ParameterError, match=words):
+        SafetyLimits(**kw)
+
+
+finite = st.floats(-1e3, 1e3)
+anyf = st.floats(allow_nan=True, allow_infinity=True)
+
+
+@settings(max_examples=300, deadline=None)
+@given(z_a=anyf, z_b=anyf, u_a=anyf, u_b=anyf, p_a=anyf, p_b=anyf, theta=anyf, torque=anyf)
+def test_whatever_comes_in_the_output_is_within_limits_or_the_fault_state(
+        z_a: float, z_b: float, u_a: float, u_b: float, p_a: float, p_b: float, theta: float, torque: float) -> None:
+    lim = SafetyLimits(p_max_bar=5.0)
+    s = SafetySupervisor(lim, PERIOD)
+    out = s.apply(Command(z_a, z_b, u_a, u_b), _meas(0.0, p_a, p_b, theta, torque))
+    if s.fault is not None:
+        assert out == VENT_COMMAND
+    else:
+        assert 0.0 <= out.z_a <= 5.0 and 0.0 <= out.z_b <= 5.0
+        assert 0.0 <= out.u_a <= 10.0 and 0.0 <= out.u_b <= 10.0
+
+
+# ------------------------------------------------------------ fault injection
+
+def _engine(tmp_path: Path, fault: dict | None, duration: float = 4.5) -> tuple[Engine, SafetySupervisor, Path,
+                                                                                  list[tuple[float, ...]]]:
+    """An isotonic workout on the Default controller at P_w = 3 bar, faulted at ``AT``, logged."""
+    clock = SimClock()
+    sim = SimulatedRig(clock, pw_bar=3.0, seed=1)
+    sim.set_program(isotonic(+1, repetitions=1, amplitude=math.radians(50.0)))
+    rig = FaultyRig(sim)
+    if fault:
+        rig.inject(at=AT, **fault)
+    safety = SafetySupervisor(SafetyLimits(), PERIOD)
+    log = RunLogWriter(tmp_path, "run", {"rig": "rotary", "sample_rate_hz": 200.0, "p_atm_bar": P_ATM / BAR,
+                                         "working_pressure_bar": 3.0, "experiment": "workout", "human": True})
+    truth: list[tuple[float, ...]] = []
+
+    def observe(m: Measurement, c: Command) -> None:
+        tr = sim.sim.truth()
+        truth.append((m.t, tr["p_a_bar"], tr["p_b_bar"]))
+
+    eng = Engine(rig, InteractionController(ControllerConfig(controller="default", pw_bar=3.0)), clock, 200.0,
+                 safety=safety, recorder=log, on_tick=observe)
+    rig.activate()
+    try:
+        eng.run_for(duration)
+    except ConnectionError:
+        pass  # the link fault: the engine has already written the safe state and latched it
+    log.close("fault" if safety.fault else "complete")
+    return eng, safety, log.csv_path, truth
+
+
+FAULTS = [
+    ({"kind": "nan", "channel": "p_a"}, {"sensor_nan"}, PERIOD),
+    ({"kind": "dropout", "channel": "p_a"}, {"pressure_jump"}, PERIOD),
+    ({"kind": "dropout", "channel": "torque"}, {"sensor_stuck"}, 0.5 + 2 * PERIOD),
+    ({"kind": "stuck_sensor", "channel": "p_b"}, {"sensor_stuck"}, 0.5 + 2 * PERIOD),
+    ({"kind": "encoder_glitch", "counts": 400}, {"encoder_glitch"}, PERIOD),
+    # the PRV jams at 6 V: the arm is pushed (torque limit) before the chamber-follow check's 0.5 s
+    ({"kind": "stuck_prv", "side": "a", "value": 6.0}, {"torque_limit", "prv_not_following", "pressure_limit"}, 0.6),
+    ({"kind": "supply_loss", "value": 1.5}, {"supply_lost"}, 0.3 + 2 * PERIOD),
+    ({"kind": "link_lost"}, {"link_lost"}, PERIOD),
+]
+
+
+@pytest.mark.parametrize(("fault", "codes", "latency"), FAULTS, ids=[f[0]["kind"] + "-" + str(f[0].get("channel", ""))
+                                                                    for f in FAULTS])
+def test_every_injected_fault_ends_in_the_safe_state_within_one_period_with_the_log_intact(
+        tmp_path: Path, fault: dict, codes: set[str], latency: float) -> None:
+    eng, safety, csv_path, truth = _engine(tmp_path, fault)
+    f = safety.fault
+    assert f is not None and f.code in codes, f
+    if f.code == "link_lost":
+        # nothing was read in the faulted period; the safe state went out in it
+        assert eng.backend.inner.last_applied == VENT_COMMAND  # type: ignore[attr-defined]
+        assert eng.error is not None
+    else:
+        assert AT <= f.t <= AT + latency + 1e-9, f"detected {f.t - AT:.3f} s after the fault"
+    with csv_path.open() as fh:
+        rows = list(csv.DictReader(fh))
+    meta = json.loads(csv_path.with_suffix(".json").read_text())
+    assert meta["status"] == "fault" and len(rows) == eng.ticks  # every period logged, none lost
+    t = np.array([float(r["t"]) for r in rows])
+    assert np.all(np.diff(t) > 0)
+    cmd = np.array([[float(r[k]) for k in ("z_a", "z_b", "u_a", "u_b")] for r in rows])
+    # a lost link logs no row for the period it failed in
+    first = len(t) if f.code == "link_lost" else int(np.searchsorted(t, f.t))
+    # the detection period itself writes the safe state, and every later one
+    assert np.all(cmd[first:] == [VENT_COMMAND.z_a, VENT_COMMAND.z_b, VENT_COMMAND.u_a, VENT_COMMAND.u_b])
+    assert not np.all(cmd[first - 1] == [0.0, 0.0, 10.0, 0.0])  # ... and not before it
+    if f.code != "link_lost":
+        tr = np.array(truth)
+        after = tr[tr[:, 0] >= f.t]
+        # no net torque left and the chambers vented: |Δp| < 0.05 bar after 0.3 s, both near atmosphere after 1 s
+        assert np.abs(after[after[:, 0] >= f.t + 0.3, 1] - after[after[:, 0] >= f.t + 0.3, 2]).max() < 0.05
+        assert after[after[:, 0] >= f.t + 1.0, 1:].max() < 1.2
+
+
+def test_a_healthy_workout_trips_nothing(tmp_path: Path) -> None:
+    """The checks must not fire on the rig they protect (noise, motion, pressurising)."""
+    eng, safety, _, _ = _engine(tmp_path, None, duration=8.0)
+    assert safety.fault is None and eng.ticks == 1600
+
+
+@pytest.mark.serial
+def test_the_watchdog_puts_a_stalled_loop_in_the_safe_state(tmp_path: Path) -> None:
+    """A hung DAQ call (``read`` blocks 0.6 s): the watchdog thread writes the fault state itself."""
+    clock = WallClock()
+    sim = SimulatedRig(clock, pw_bar=3.0)
+    rig = FaultyRig(sim)
+    safety = SafetySupervisor(period=PERIOD)
+    eng = Engine(rig, InteractionController(ControllerConfig(controller="default", pw_bar=3.0)), clock, 200.0,
+                 safety=safety, stall_s=0.1)
+    rig.activate()
+    eng.start()
+    try:
+        time.sleep(0.3)
+        rig.inject("stall", at=sim.sim.t, value=0.6)
+        t0 = time.monotonic()
+        while sim.last_applied != VENT_COMMAND and time.monotonic() - t0 < 2.0:
+            time.sleep(0.002)
+        waited = time.monotonic() - t0
+    finally:
+        eng.stop()
+    assert safety.fault is not None and safety.fault.code == "stall", safety.fault
+    # stall_s, plus the watchdog's poll (a period), plus one period of slack for the scheduler
+    assert waited < 0.1 + 3 * PERIOD + 0.05, waited
+    assert eng.stalls == 1
+
+
+# ------------------------------------------------------------ through the API
+
+def test_the_emergency_stop_acts_from_any_state_and_ends_a_run_as_a_fault(tmp_path: Path) -> None:
+    from fastapi.testclient import TestClient
+
+    from app.api.main import create_app
+    from app.api.settings import Settings
+
+    app = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))
+    with TestClient(app) as c:
+        st = c.post("/api/engine/estop").json()  # even disconnected it latches: clear before anything moves
+        assert st["state"] == "fault" and st["safety"]["fault"]["code"] == "estop" and st["allowed"] == ["clear"]
+        assert c.post("/api/engine/connect").status_code == 409
+        assert c.post("/api/engine/clear").json()["state"] == "disconnected"
+        c.post("/api/engine/connect")
+        rid = c.post("/api/engine/start", json={"scenario": "SC-1", "controller": "default"}).json()["run_id"]
+        deadline = time.monotonic() + 30
+        while c.get("/api/engine").json()["progress"]["phase"] != "exercising" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)
+        st = c.post("/api/engine/estop").json()
+        assert st["state"] == "fault" and "emergency stop" in st["fault"]
+        t_f = st["safety"]["fault"]["t"]
+        while c.get("/api/engine").json()["last_run"] is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        run = c.get(f"/api/runs/{rid}").json()
+        assert run["status"] == "fault" and run["result"]["fault"]["code"] == "estop", run
+        rows = list(csv.DictReader(c.get(f"/api/runs/{rid}/export").text.splitlines()))
+        t = np.array([float(r["t"]) for r in rows])
+        cmd = np.array([[float(r[k]) for k in ("z_a", "z_b", "u_a", "u_b")] for r in rows])
+        assert t[-1] > t_f + PERIOD  # the log runs on into the safe state
+        # the period under way when it was pressed may still finish its own command; the next one is safe
+        assert np.all(cmd[t > t_f + PERIOD + 1e-9] == [0.0, 0.0, 10.0, 0.0])
+        assert np.any(cmd[t <= t_f] != [0.0, 0.0, 10.0, 0.0])
+        (meta,) = (tmp_path / "runs").glob("*.json")
+        assert json.loads(meta.read_text())["status"] == "fault"
+        assert c.post("/api/engine/clear").json()["state"] == "disconnected"
+
+
+@pytest.mark.slow
+def test_a_run_started_right_after_one_that_ended_far_from_neutral_does_not_yank_the_arm(tmp_path: Path) -> None:
+    # found by the torque limit: the simulated user used to jump from where the handle was
+    # back to neutral at the next program start, an 8 N·m yank on the arm
+    from app.engine.station import LIVE_COLUMNS, RunSpec, Station
+
+    st = Station(data_dir=tmp_path)
+    try:
+        st.connect()
+        st.start(RunSpec(scenario="SC-1", controller="pid", target_nm=1.2))
+        th, tq = LIVE_COLUMNS.index("theta"), LIVE_COLUMNS.index("torque")
+        deadline = time.monotonic() + 30
+        while (last := st.live.latest()) is None or abs(last[th]) < 1.0:
+            assert time.monotonic() < deadline and st.state.value == "running"
+            time.sleep(0.05)
+        st.stop()
+        t_start = float(st.live.latest()[0])
+        st.start(RunSpec(scenario="SC-1", controller="pid", target_nm=1.2))
+        time.sleep(5.0)  # the return to neutral (≤ 4 s from ±1.5 rad) and the program's start
+        assert st.state.value == "running" and st.safety.fault is None, st.safety.fault
+        rows = st.live.since(t_start, 100_000)
+        assert len(rows) > 500 and np.max(np.abs(rows[:, tq])) < 3.0, np.max(np.abs(rows[:, tq]))
+        assert abs(rows[-1, th]) < abs(rows[0, th])  # the handle came back towards neutral
+        st.stop()
+    finally:
+        st.close()
