@@ -150,7 +150,8 @@ with sync_playwright() as p:
     for k in range(n):  # one by one: a viser page that loads beside others may stall
         page = browser.new_context(viewport={"width": 1200, "height": 800}).new_page()
         page.goto(base if k % 2 == 0 else viser)
-        page.wait_for_selector("canvas", state="attached", timeout=60000)
+        # later pages load beside busy ones
+        page.wait_for_selector("canvas", state="attached", timeout=60000 + 15000 * k)
         pages.append(page)
     print("ready", flush=True)
     sys.stdin.readline()  # watch until told to stop

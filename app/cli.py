@@ -6,6 +6,7 @@ import argparse
 import json
 import math
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -293,7 +294,8 @@ def _serve(args: argparse.Namespace) -> int:
     from app.api.settings import Settings
 
     try:
-        settings = Settings(host=args.host, port=args.port, viser_port=args.viser_port)
+        extra = {"hardware": args.hardware} if args.hardware else {}
+        settings = Settings(host=args.host, port=args.port, viser_port=args.viser_port, **extra)
     except ValidationError as exc:
         reasons = (f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg'].removeprefix('Value error, ')}"
                for e in exc.errors(include_input=False))
@@ -305,7 +307,34 @@ def _serve(args: argparse.Namespace) -> int:
         why = make_server_realtime()
         if why:
             print(f"cwrr serve: normal scheduling ({why}); /api/health reports the loop's jitter", file=sys.stderr)
+    if settings.hardware:
+        from app.engine.hardware.config import load_config
+
+        load_config(settings.hardware)  # a wrong file is refused here, with the field named, not in the lifespan
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
+    return 0
+
+
+def _modbus_plant(args: argparse.Namespace) -> int:
+    from app.engine.hardware.config import HardwareConfig, load_config
+    from app.engine.hardware.modbus import PlantServer
+    from app.engine.hardware.sim import SimulatedRig
+    from app.engine.human import HumanProgram
+    from app.engine.loop import WallClock
+
+    cfg = load_config(args.hardware) if args.hardware else HardwareConfig(backend="modbus")
+    rig = SimulatedRig(WallClock(), period=1.0 / cfg.rate_hz)
+    rig.set_program(HumanProgram.rest())
+    server = PlantServer(rig, cfg, host=args.host, port=args.port).start()
+    print(f"cwrr modbus-plant: the simulated rotary rig on modbus://{server.host}:{server.port} "
+          f"(register layout: app/engine/hardware/modbus.py); Ctrl-C stops", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
     return 0
 
 
@@ -423,7 +452,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     v.add_argument("--host", default="127.0.0.1")
     v.add_argument("--port", type=int, default=8000)
     v.add_argument("--viser-port", type=int, default=8080)
+    v.add_argument("--hardware", default="", help="YAML hardware configuration (default: the simulator)")
     v.set_defaults(fn=_serve)
+    mp = sub.add_parser("modbus-plant", help="serve the simulated rig over Modbus TCP (hardware-in-the-loop)")
+    mp.add_argument("--host", default="127.0.0.1")
+    mp.add_argument("--port", type=int, default=5020)
+    mp.add_argument("--hardware", default="", help="YAML hardware configuration (register layout and scaling)")
+    mp.set_defaults(fn=_modbus_plant)
     args = ap.parse_args(argv)
     try:
         return int(args.fn(args))

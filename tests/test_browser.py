@@ -37,6 +37,18 @@ def station(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str
         yield base, f"http://127.0.0.1:{vport}"
 
 
+@pytest.fixture(autouse=True)
+def _report_the_engine(station: tuple[str, str]) -> Iterator[None]:
+    """Print the station's state and safety fault after each test (shown when one fails)."""
+    import json
+    import urllib.request
+
+    yield
+    with urllib.request.urlopen(station[0] + "/api/engine", timeout=10) as r:
+        st = json.loads(r.read())
+    print("engine after the test:", st["state"], st.get("fault"), (st.get("safety") or {}).get("fault"))
+
+
 @pytest.fixture(scope="module")
 def browser() -> Iterator[object]:
     from playwright.sync_api import sync_playwright

@@ -19,6 +19,7 @@ from app.api.jobs import Jobs
 from app.api.models import AuthInfo, ViserInfo
 from app.api.routers import diagnoses, engine, params, runs, sessions
 from app.api.settings import Settings
+from app.engine.hardware.config import load_config
 from app.engine.params import ParameterError
 from app.engine.station import Station, TransitionError
 from app.storage import Store
@@ -32,10 +33,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        hardware = load_config(settings.hardware) if settings.hardware else None  # refused before anything opens
         store = Store(settings.db_url)
-        station = Station(data_dir=settings.data_dir, sink=store, rate_hz=settings.rate_hz,
-                          realtime=settings.realtime,
-                          stall_s=settings.watchdog_s)
+        station = Station(data_dir=settings.data_dir, sink=store,
+                          rate_hz=hardware.rate_hz if hardware is not None else settings.rate_hz,
+                          realtime=settings.realtime, stall_s=settings.watchdog_s,
+                          hardware=hardware, hardware_path=settings.hardware or None)
         app.state.store, app.state.station = store, station
         app.state.jobs = jobs = Jobs()
         plots = None

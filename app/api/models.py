@@ -52,6 +52,9 @@ class EngineStatus(BaseModel):
         safety: The safety supervisor: ``fault`` (code, message, t [s],
             channel, or null), ``no_action`` (the soft ROM limit is holding the
             vane), ``faults_total`` and the ``limits`` in force.
+        calibration: Dates of the last torque-zero, pressure-offset and
+            encoder-zero calibrations (null for backends without sensor
+            scaling, e.g. the simulator).
     """
 
     state: str
@@ -63,6 +66,44 @@ class EngineStatus(BaseModel):
     progress: dict[str, Any] | None = None
     last_run: dict[str, Any] | None = None
     safety: dict[str, Any] | None = None
+    calibration: dict[str, str | None] | None = None
+
+
+class CalibrateRequest(BaseModel):
+    """Zero one sensor from idle samples (issue 8 item 5).
+
+    Attributes:
+        what: ``torque_zero`` (nobody holds the handle), ``pressure_offsets``
+            (both chambers vented to atmosphere) or ``encoder_zero`` (handle
+            held still at neutral).
+        seconds: Averaging time [s].
+        p_atm_bar: The local atmosphere [bar abs] (standard atmosphere unless measured).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    what: Literal["torque_zero", "pressure_offsets", "encoder_zero"]
+    seconds: float = Field(1.0, ge=0.2, le=30.0, description="s")
+    p_atm_bar: float = Field(1.01325, ge=0.7, le=1.1, description="bar abs")
+
+
+class CalibrationResult(BaseModel):
+    """What a calibration changed.
+
+    Attributes:
+        what: Which calibration.
+        date: Its date (ISO), now in the configuration.
+        samples: Samples averaged.
+        before: The scaling values before [bar abs, N·m or counts].
+        after: The values after.
+        saved_to: The configuration file written (None: not saved, no file given).
+    """
+
+    what: str
+    date: str
+    samples: int
+    before: dict[str, float]
+    after: dict[str, float]
+    saved_to: str | None
 
 
 class RunRequest(BaseModel):

@@ -33,6 +33,8 @@ class Settings(BaseSettings):
             (none by default: the dashboard is served by this server).
         max_body_bytes: Largest request body [bytes]; larger ones get 413.
         watchdog_s: The engine watchdog's stall time [s] (see ``Engine``).
+        hardware: Path of the YAML hardware configuration (backend, channels,
+            scaling, calibration); empty: the embedded simulator.
     """
 
     # hide_input_in_errors: a refused setting must not echo the environment (tokens) into a log
@@ -52,6 +54,7 @@ class Settings(BaseSettings):
     cors_origins: list[str] = []
     max_body_bytes: Annotated[int, Field(ge=1024, le=1 << 30)] = 1 << 20
     watchdog_s: Annotated[float, Field(gt=0.0, le=60.0)] = 1.0
+    hardware: str = ""
 
     @model_validator(mode="after")
     def _access_rules(self) -> Settings:

@@ -387,7 +387,10 @@ class Engine:
         if self._watchdog is not None:
             self._watchdog.join(timeout)
             self._watchdog = None
-        self.backend.write(self.backend.safe_command())
+        try:
+            self.backend.write(self.backend.safe_command())
+        except Exception:  # a lost link cannot take it; the DAQ's watchdog already holds the safe outputs
+            pass
 
     @property
     def running(self) -> bool:

@@ -36,8 +36,10 @@ from app.engine.constants import BAR, P_ATM
 from app.engine.control.config import ControllerConfig, ControllerName
 from app.engine.control.interaction import InteractionController
 from app.engine.hardware.base import SAFE_COMMAND, Command, HardwareInterface, Measurement
+from app.engine.hardware.config import HardwareConfig, save_config
+from app.engine.hardware.factory import make_factory
 from app.engine.loop import Controller, Engine, WallClock
-from app.engine.params import ParameterError, PlantParams, SensorParams
+from app.engine.params import ParameterError, PlantParams, SensorParams, check_range
 from app.engine.runlog import RunLogWriter
 from app.engine.safety import SafetyLimits, SafetySupervisor
 from app.engine.scenarios import SCENARIOS, Case, ScenarioSettings, case_controller, case_program, score_case
@@ -66,6 +68,7 @@ ALLOWED: dict[str, tuple[State, ...]] = {
     "estimate": (State.IDLE,),
     "stop": (State.RUNNING, State.IDENTIFYING),
     "clear": (State.FAULT,),
+    "calibrate": (State.IDLE,),
 }
 """Which states each action is legal in."""
 
@@ -330,6 +333,9 @@ class Station:
         limits: Safety limits beyond each rig's defaults (``SafetyLimits``
             field → value, e.g. ``{"p_max_bar": 5.0}``).
         stall_s: The engine watchdog's stall time [s].
+        hardware: The hardware configuration (backend, channels, scaling);
+            its backend replaces ``backend_factory`` unless it is ``sim``.
+        hardware_path: Where ``hardware`` came from; calibrations are saved there.
     """
 
     def __init__(
@@ -341,7 +347,14 @@ class Station:
         realtime: bool = False,
         limits: dict[str, Any] | None = None,
         stall_s: float = 1.0,
+        hardware: HardwareConfig | None = None,
+        hardware_path: Path | str | None = None,
     ) -> None:
+        self.hardware = hardware
+        self.hardware_path = Path(hardware_path) if hardware_path is not None else None
+        if hardware is not None:
+            backend_factory = backend_factory or make_factory(hardware)
+            limits = {**hardware.limits, **(limits or {})}
         self.realtime = realtime
         self.limit_overrides = dict(limits or {})
         SafetyLimits.for_rig("rotary", **self.limit_overrides)  # refuse bad limits at construction
@@ -389,7 +402,8 @@ class Station:
     def allowed(self) -> list[str]:
         """Actions legal now."""
         st = self.state
-        return [a for a, ok in ALLOWED.items() if st in ok]
+        scaled = isinstance(getattr(self.backend, "config", None), HardwareConfig)
+        return [a for a, ok in ALLOWED.items() if st in ok and (a != "calibrate" or scaled)]
 
     def _require(self, action: str) -> None:
         st = self.state
@@ -424,12 +438,12 @@ class Station:
             self.rig = rig
             self.supervisor = Supervisor(backend.safe_command())
             self.safety = SafetySupervisor(SafetyLimits.for_rig(rig.kind, **self.limit_overrides),
-                                           1.0 / self.rate_hz)
+                                           1.0 / self.rate_hz, plant_responds=backend.responds_to_commands)
             # The first read/step compiles the numba kernels (seconds on a fresh
             # install); doing it here keeps that stall out of the loop's jitter.
+            backend.activate()  # a real backend cannot be read before its link is open
             warm = InteractionController()
             warm.step(backend.read(), 1.0 / self.rate_hz)
-            backend.activate()
             self.backend = backend
             self.live.clear()
             self._start_engine(self.rate_hz)
@@ -563,6 +577,84 @@ class Station:
                     else self.safety.fault.message
                 self._state = State.FAULT
 
+    def calibrate(self, what: str, seconds: float = 1.0, p_atm_bar: float = P_ATM / BAR) -> dict[str, Any]:
+        """Zero a sensor from ``seconds`` of idle samples and save the configuration with today's date.
+
+        The station must be idle (chambers venting, nobody holding the handle
+        for the torque zero, the handle at neutral for the encoder zero).
+
+        Args:
+            what: ``torque_zero``, ``pressure_offsets`` (chambers a and b at
+                atmosphere) or ``encoder_zero``.
+            seconds: Averaging time [s].
+            p_atm_bar: The atmosphere the vented chambers read [bar abs]
+                (standard atmosphere unless a barometer says otherwise).
+
+        Returns:
+            What changed: ``{"what", "date", "samples", "before", "after"}``.
+
+        Raises:
+            TransitionError: Not idle, or the backend has no sensor scaling (the simulator).
+            ParameterError: The samples say the rig is not in the state the zero needs.
+        """
+        if what not in ("torque_zero", "pressure_offsets", "encoder_zero"):
+            raise ParameterError(f"what = {what!r} must be torque_zero, pressure_offsets or encoder_zero")
+        check_range("seconds", seconds, 0.2, 30.0, unit="s")
+        check_range("p_atm_bar", p_atm_bar, 0.7, 1.1, unit="bar abs")
+        with self._lock:
+            self._require("calibrate")
+            cfg = getattr(self.backend, "config", None)
+            if not isinstance(cfg, HardwareConfig):
+                raise TransitionError("calibrate", self.state, f"the {self.backend.name if self.backend else ''} "
+                                      "backend has no sensor scaling to calibrate (modbus and quanser do)")
+            last = self.live.latest()
+            t_from = float(last[0]) if last is not None else -1.0
+        time.sleep(seconds)  # the loop keeps sampling meanwhile; the live buffer holds the samples
+        rows = self.live.since(t_from, 100_000)
+        with self._lock:
+            if self.state != State.IDLE or getattr(self.backend, "config", None) is not cfg:
+                raise TransitionError("calibrate", self.state, "the station changed state while calibrating")
+            assert isinstance(cfg, HardwareConfig)
+            if len(rows) < 10:
+                raise ParameterError(f"seconds = {seconds}: only {len(rows)} samples arrived; is the loop running?")
+            col = {c: rows[:, i] for i, c in enumerate(LIVE_COLUMNS)}
+            if what == "torque_zero":
+                m, sd = float(np.mean(col["torque"])), float(np.std(col["torque"]))
+                if abs(m) > 1.0 or sd > 0.2:
+                    raise ParameterError(f"what = torque_zero: the torque reads {m:.2f} ± {sd:.2f} N·m; let go of "
+                                         "the handle (nobody may hold it while the sensor is zeroed)")
+                tq = cfg.inputs.torque
+                new = cfg.calibrated(what, inputs=cfg.inputs.model_copy(
+                    update={"torque": tq.model_copy(update={"offset": tq.offset - m})}))
+                before, after = {"torque_offset_nm": tq.offset}, {"torque_offset_nm": tq.offset - m}
+            elif what == "pressure_offsets":
+                ma, mb = float(np.mean(col["p_a"])), float(np.mean(col["p_b"]))
+                if max(abs(ma - p_atm_bar), abs(mb - p_atm_bar)) > 0.3:
+                    raise ParameterError(f"what = pressure_offsets: the chambers read {ma:.2f} and {mb:.2f} bar abs, "
+                                         f"not the atmosphere ({p_atm_bar:.2f}); wait until they have vented")
+                pa, pb = cfg.inputs.p_a, cfg.inputs.p_b
+                new = cfg.calibrated(what, inputs=cfg.inputs.model_copy(update={
+                    "p_a": pa.model_copy(update={"offset": pa.offset - (ma - p_atm_bar)}),
+                    "p_b": pb.model_copy(update={"offset": pb.offset - (mb - p_atm_bar)})}))
+                before = {"p_a_offset_bar": pa.offset, "p_b_offset_bar": pb.offset}
+                after = {"p_a_offset_bar": new.inputs.p_a.offset, "p_b_offset_bar": new.inputs.p_b.offset}
+            else:
+                m, w = float(np.mean(col["theta"])), float(np.max(np.abs(col["omega"])))
+                if w > 0.05:
+                    raise ParameterError(f"what = encoder_zero: the handle moves ({w:.2f} rad/s); hold it still "
+                                         "at neutral")
+                enc = cfg.encoder
+                shift = int(round(enc.sign * m * enc.counts_per_rev / (2.0 * np.pi)))
+                new = cfg.calibrated(what, encoder=enc.model_copy(update={"zero_counts": enc.zero_counts + shift}))
+                before, after = {"zero_counts": enc.zero_counts}, {"zero_counts": enc.zero_counts + shift}
+            if self.hardware_path is not None:
+                save_config(new, self.hardware_path)  # atomic: the old file or the new, never half
+            self.backend.config = new  # type: ignore[union-attr]
+            self.hardware = new
+            date = getattr(new.calibration, what)
+        return {"what": what, "date": date, "samples": len(rows), "before": before, "after": after,
+                "saved_to": str(self.hardware_path) if self.hardware_path else None}
+
     def close(self) -> None:
         """Stop everything (server shutdown)."""
         with self._lock:
@@ -578,8 +670,11 @@ class Station:
     def status(self) -> dict[str, Any]:
         """State, allowed actions and progress of the current work."""
         st = self.state
+        cfg = getattr(self.backend, "config", None)
         out: dict[str, Any] = {"state": st.value, "allowed": self.allowed(), "run_id": self._run_id,
                                "backend": self.backend.name if self.backend else None,
+                               "calibration": (cfg.calibration.model_dump() if isinstance(cfg, HardwareConfig)
+                                               else None),
                                "rig": asdict(self.rig) if self.backend else None,
                                "fault": self.fault_message, "progress": None, "last_run": self.last_run,
                                "safety": self.safety.status()}
@@ -710,7 +805,10 @@ class Station:
         """A fault ended the identification: store what it had, leave the engine writing safe outputs."""
         proc = self._proc
         proc.cancel()
-        result = {"progress": proc.progress.as_dict(), "fault": self._fault_detail()}
+        self._record_procedure(status, {"progress": proc.progress.as_dict(), "fault": self._fault_detail()})
+
+    def _record_procedure(self, status: str, result: dict[str, Any]) -> None:
+        """Store how the procedure ended and take it off the loop."""
         if self.sink is not None and self._run_id is not None:
             self.sink.run_finished(self._run_id, status, None, result)
         self.last_run = {"run_id": self._run_id, "status": status, "result": result}
@@ -726,13 +824,7 @@ class Station:
             result = self._proc_fit(proc)
         except Exception as exc:  # too little data to fit (cancelled early): keep the status
             result = {"error": f"{type(exc).__name__}: {exc}"}
-        result = {"progress": proc.progress.as_dict(), **(result or {})}
-        if self.sink is not None and self._run_id is not None:
-            self.sink.run_finished(self._run_id, status, None, result)
-        self.last_run = {"run_id": self._run_id, "status": status, "result": result}
-        assert self.supervisor is not None
-        self.supervisor.job = None
-        self._proc = None
+        self._record_procedure(status, {"progress": proc.progress.as_dict(), **(result or {})})
         self._stop_engine()
         self._start_engine(self.rate_hz)
         self._state = State.IDLE

@@ -10,6 +10,8 @@ from fastapi import APIRouter, Query
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import StationDep, StoreDep
 from app.api.models import (
+    CalibrateRequest,
+    CalibrationResult,
     ConnectRequest,
     DCVIdentRequest,
     EngineStatus,
@@ -218,6 +220,12 @@ def estop(station: StationDep) -> EngineStatus:
 def clear(station: StationDep) -> EngineStatus:
     station.clear()
     return EngineStatus(**station.status())
+
+
+@router.post("/engine/calibrate", dependencies=[ADMIN], response_model=CalibrationResult, responses=CONFLICT,
+             summary="idle: zero the torque sensor, the chamber pressure offsets or the encoder; saved with a date")
+def calibrate(body: CalibrateRequest, station: StationDep) -> CalibrationResult:
+    return CalibrationResult(**station.calibrate(body.what, body.seconds, body.p_atm_bar))
 
 
 @router.get("/live", dependencies=[READ], responses=AUTH_RESPONSES, response_model=LiveData,

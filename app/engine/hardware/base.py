@@ -78,6 +78,8 @@ class HardwareInterface(abc.ABC):
 
     name: str = "abstract"
     rig: str = "rotary"
+    responds_to_commands: bool = True
+    """False where the measurements do not answer the commands (a replayed log)."""
 
     @abc.abstractmethod
     def activate(self) -> None:

@@ -4,8 +4,8 @@
 what it reads or what it does with the commands, the way real faults do:
 
 ``nan``            a channel reads NaN (ADC or driver failure)
-``dropout``        a channel reads what 0 V means (broken wire): atmospheric
-                   pressure, zero torque
+``dropout``        a channel reads what 0 V means (broken wire): 0 bar abs
+                   on the 0–5 V absolute pressure sensors, zero torque
 ``stuck_sensor``   a channel repeats the value it had
 ``encoder_glitch`` the angle loses ``counts`` encoder counts (noise on the
                    quadrature lines), and keeps the offset
@@ -27,12 +27,11 @@ import time
 from dataclasses import dataclass, replace
 from typing import Any
 
-from app.engine.constants import BAR, P_ATM
 from app.engine.hardware.base import Command, HardwareInterface, Measurement
 
 FAULT_KINDS = ("nan", "dropout", "stuck_sensor", "encoder_glitch", "stuck_prv", "supply_loss", "link_lost", "stall")
 CHANNELS = ("p_a", "p_b", "p_s", "theta", "omega", "torque")
-_ZERO_VOLT = {"p_a": P_ATM / BAR, "p_b": P_ATM / BAR, "p_s": P_ATM / BAR, "theta": 0.0, "omega": 0.0, "torque": 0.0}
+_ZERO_VOLT = {"p_a": 0.0, "p_b": 0.0, "p_s": 0.0, "theta": 0.0, "omega": 0.0, "torque": 0.0}
 
 
 @dataclass

@@ -1,0 +1,138 @@
+"""Quanser HIL boards (the thesis's Q8-USB) through the vendor's ``quanser.hardware`` Python API.
+
+The API ships with QUARC / the Quanser SDK, not PyPI, so it is imported when
+the backend is built and a clear message says what to install when it is
+absent. Calls used, with the vendor's signatures (``hil.h`` and the SDK's
+Python examples):
+
+* ``HIL().open(card_type, card_identifier)``, ``close()``;
+* ``read(analog_channels, num_analog, encoder_channels, num_encoder,
+  digital_channels, num_digital, other_channels, num_other, voltages, counts,
+  digital_values, other_values)`` — one immediate sample of all inputs;
+* ``write_analog(channels, num_channels, voltages)``;
+* ``watchdog_set_analog_expiration_state(channels, num_channels, voltages)``,
+  ``watchdog_start(timeout)``, ``watchdog_reload()`` (False once expired),
+  ``watchdog_is_expired()``, ``watchdog_stop()``, ``watchdog_clear()``.
+
+Channel and buffer arguments are ``array.array`` of C ``uint32`` / ``double``
+/ ``int32``, as in the vendor's examples. The board's watchdog holds the
+configured safe outputs if the station stops reloading it (a dead process, a
+hung loop); the engine paces the I/O (immediate mode), so the loop period is
+the engine's, not a hardware-timed task's.
+"""
+
+from __future__ import annotations
+
+import array
+from typing import Any
+
+from app.engine.hardware.base import Command, HardwareInterface, Measurement
+from app.engine.hardware.config import HardwareConfig, SpeedEstimator
+
+MISSING = ("the Quanser backend needs the vendor's Python API (module quanser.hardware), which ships with QUARC or "
+           "the Quanser SDK and is not on PyPI: install it from Quanser, or choose backend sim or modbus")
+
+
+class WatchdogExpired(ConnectionError):
+    """The board's watchdog expired: it has already set the safe outputs."""
+
+
+def load_hil() -> Any:
+    """The vendor's ``HIL`` class.
+
+    Raises:
+        RuntimeError: The vendor API is not installed (says what to do).
+    """
+    try:
+        from quanser.hardware import HIL  # type: ignore[import-not-found]
+    except ImportError:
+        raise RuntimeError(MISSING) from None
+    return HIL
+
+
+class QuanserRig(HardwareInterface):
+    """The rotary rig on a Quanser HIL board.
+
+    Args:
+        config: Channel map, scaling, the card and its watchdog.
+        clock: The engine's clock (sample times).
+        period: Nominal sampling period [s] (speed estimator).
+        rig: ``"rotary"`` only.
+        hil_class: The vendor's ``HIL`` class (looked up when omitted).
+    """
+
+    name = "quanser"
+
+    def __init__(self, config: HardwareConfig, clock: Any, period: float, rig: str = "rotary",
+                 hil_class: Any = None) -> None:
+        if rig != "rotary":
+            raise ValueError(f"the Quanser backend maps the rotary rig only, not {rig!r}")
+        self.config = config
+        self.clock = clock
+        self.period = period
+        self.rig = rig
+        self._hil_class = hil_class or load_hil()
+        self.card: Any = None
+        self.speed = SpeedEstimator(config.speed_filter_hz, period)
+        ins, outs = config.inputs, config.outputs
+        self._ai = array.array("I", [ins.p_a.channel, ins.p_b.channel, ins.p_s.channel, ins.torque.channel])
+        self._enc = array.array("I", [config.encoder.channel])
+        self._ao = array.array("I", [outs.z_a.channel, outs.z_b.channel, outs.u_a.channel, outs.u_b.channel])
+        self._volts = array.array("d", [0.0] * 4)
+        self._counts = array.array("i", [0])
+        self._out = array.array("d", [0.0] * 4)
+        self.last_applied = config.safe_outputs.command()
+
+    def safe_command(self) -> Command:
+        """The configured safe outputs."""
+        return self.config.safe_outputs.command()
+
+    def activate(self) -> None:
+        """Open the board, set the watchdog's expiration outputs to the safe state, start it, write safe outputs."""
+        card = self._hil_class()
+        card.open(self.config.card().card_type, self.config.card().card_id)
+        self.card = card
+        safe = self.safe_command()
+        states = array.array("d", [safe.z_a, safe.z_b, safe.u_a, safe.u_b])
+        card.watchdog_set_analog_expiration_state(self._ao, len(self._ao), states)
+        card.watchdog_clear()
+        card.watchdog_start(self.config.card().watchdog_s)
+        self.speed.reset()
+        self.write(safe)
+
+    def deactivate(self) -> None:
+        """Safe outputs, stop the watchdog, close the board."""
+        if self.card is None:
+            return
+        try:
+            if not self.card.watchdog_is_expired():  # expired: the board already holds the safe outputs
+                self._write_raw(self.safe_command())
+            self.card.watchdog_stop()
+        finally:
+            self.card.close()
+            self.card = None
+
+    def read(self) -> Measurement:
+        """One immediate sample of the four analog inputs and the encoder, scaled."""
+        self.card.read(self._ai, len(self._ai), self._enc, 1, None, 0, None, 0, self._volts, self._counts, None, None)
+        ins, v = self.config.inputs, self._volts
+        theta = self.config.encoder.to_rad(int(self._counts[0]))
+        return Measurement(self.clock.now(), ins.p_a.to_physical(v[0]), ins.p_b.to_physical(v[1]),
+                           ins.p_s.to_physical(v[2]), theta, self.speed.update(theta), ins.torque.to_physical(v[3]))
+
+    def _write_raw(self, c: Command) -> None:
+        self._out[0], self._out[1], self._out[2], self._out[3] = c.z_a, c.z_b, c.u_a, c.u_b
+        self.card.write_analog(self._ao, len(self._ao), self._out)
+
+    def write(self, command: Command) -> Command:
+        """Reload the watchdog, then write the clipped outputs.
+
+        Raises:
+            WatchdogExpired: The board already holds the safe outputs (the loop was too late).
+        """
+        if not self.card.watchdog_reload():
+            raise WatchdogExpired("the HIL board's watchdog expired; it holds the safe outputs")
+        applied = self.config.outputs.apply(command)
+        self._write_raw(applied)
+        self.last_applied = applied
+        return applied

@@ -1,0 +1,333 @@
+"""Issue 8: the Quanser HIL backend against the vendor API's documented signatures, the replay backend,
+calibration, and the backend chosen by configuration alone."""
+
+from __future__ import annotations
+
+import array
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from app.engine.hardware.base import Command
+from app.engine.hardware.config import (
+    AnalogIn,
+    AnalogOut,
+    EncoderIn,
+    HardwareConfig,
+    Inputs,
+    Outputs,
+    QuanserCard,
+    ReplaySource,
+    SafeOutputs,
+    load_config,
+    save_config,
+)
+from app.engine.hardware.quanser import MISSING, QuanserRig, WatchdogExpired, load_hil
+from app.engine.loop import SimClock
+
+# ------------------------------------------------------------------ Quanser
+
+
+class FakeHIL:
+    """Stands in for ``quanser.hardware.HIL`` with the vendor's signatures (hil.h; the SDK's examples).
+
+    Checks what the real API would refuse: buffers of the wrong C type or
+    length, channel counts that disagree with the arrays, calls on a closed
+    card. The board's state is kept so a test can look at it.
+    """
+
+    def __init__(self) -> None:
+        self.opened: tuple[str, str] | None = None
+        self.analog_in = {0: 0.0, 1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0, 5: 0.0, 6: 0.0, 7: 0.0}
+        self.encoder = {0: 0, 1: 0}
+        self.analog_out: dict[int, float] = {}
+        self.expiration: dict[int, float] = {}
+        self.watchdog: float | None = None
+        self.expired = False
+        self.reloads = 0
+
+    @staticmethod
+    def _check(channels: Any, n: int, buf: Any, code: str | None) -> None:
+        if n == 0:
+            assert channels is None or len(channels) == 0
+            return
+        assert isinstance(channels, array.array) and channels.typecode in "IL" and len(channels) == n
+        if code is not None:
+            assert isinstance(buf, array.array) and buf.typecode in code and len(buf) == n, (buf, code)
+
+    def open(self, card_type: str, card_identifier: str) -> None:
+        assert isinstance(card_type, str) and isinstance(card_identifier, str)
+        self.opened = (card_type, card_identifier)
+
+    def close(self) -> None:
+        self.opened = None
+
+    def read(self, analog_channels: Any, num_analog_channels: int, encoder_channels: Any,
+             num_encoder_channels: int, digital_channels: Any, num_digital_channels: int, other_channels: Any,
+             num_other_channels: int, analog_buffer: Any, encoder_buffer: Any, digital_buffer: Any,
+             other_buffer: Any) -> None:
+        assert self.opened
+        self._check(analog_channels, num_analog_channels, analog_buffer, "d")
+        self._check(encoder_channels, num_encoder_channels, encoder_buffer, "il")
+        self._check(digital_channels, num_digital_channels, digital_buffer, None)
+        self._check(other_channels, num_other_channels, other_buffer, None)
+        for i in range(num_analog_channels):
+            analog_buffer[i] = self.analog_in[analog_channels[i]]
+        for i in range(num_encoder_channels):
+            encoder_buffer[i] = self.encoder[encoder_channels[i]]
+
+    def write_analog(self, channels: Any, num_channels: int, buffer: Any) -> None:
+        assert self.opened and not self.expired
+        self._check(channels, num_channels, buffer, "d")
+        for i in range(num_channels):
+            assert -10.0 <= buffer[i] <= 10.0
+            self.analog_out[channels[i]] = buffer[i]
+
+    def watchdog_set_analog_expiration_state(self, channels: Any, num_channels: int, buffer: Any) -> None:
+        self._check(channels, num_channels, buffer, "d")
+        self.expiration = {channels[i]: buffer[i] for i in range(num_channels)}
+
+    def watchdog_start(self, timeout: float) -> None:
+        assert timeout > 0
+        self.watchdog = timeout
+
+    def watchdog_reload(self) -> bool:
+        self.reloads += 1
+        return not self.expired
+
+    def watchdog_is_expired(self) -> bool:
+        return self.expired
+
+    def watchdog_stop(self) -> None:
+        self.watchdog = None
+
+    def watchdog_clear(self) -> None:
+        self.expired = False
+
+    def expire(self) -> None:
+        """What the board does when nobody reloads its watchdog in time."""
+        self.expired = True
+        self.analog_out.update(self.expiration)
+
+
+def _wired() -> HardwareConfig:
+    # deliberately not 0-1-2-3: the map must be followed, not assumed
+    return HardwareConfig(
+        backend="quanser", quanser=QuanserCard(card_type="q8_usb", card_id="0", watchdog_s=0.05),
+        inputs=Inputs(p_a=AnalogIn(channel=5, gain=2.0, offset=0.01), p_b=AnalogIn(channel=2, gain=2.0),
+                      p_s=AnalogIn(channel=7, gain=2.0), torque=AnalogIn(channel=0, gain=1.0, offset=-0.05)),
+        encoder=EncoderIn(channel=1, counts_per_rev=4096, sign=-1, zero_counts=100),
+        outputs=Outputs(z_a=AnalogOut(channel=3), z_b=AnalogOut(channel=1), u_a=AnalogOut(channel=0),
+                        u_b=AnalogOut(channel=2, v_min=1.0, v_max=9.0)),
+        safe_outputs=SafeOutputs(z_a=0.0, z_b=0.0, u_a=0.0, u_b=9.0))
+
+
+def test_the_quanser_backend_maps_and_scales_every_channel_through_the_vendor_calls() -> None:
+    card = FakeHIL()
+    rig = QuanserRig(_wired(), SimClock(), 0.005, hil_class=lambda: card)
+    rig.activate()
+    assert card.opened == ("q8_usb", "0") and card.watchdog == 0.05
+    # the board's own watchdog will hold the configured safe outputs, on the right channels
+    assert card.expiration == {3: 0.0, 1: 0.0, 0: 0.0, 2: 9.0}
+    assert card.analog_out == {3: 0.0, 1: 0.0, 0: 0.0, 2: 9.0}
+    card.analog_in.update({5: 1.5, 2: 1.0, 7: 4.0, 0: 0.55})
+    card.encoder[1] = 100 - 1024  # a quarter turn clockwise on the wire, CCW after sign −1
+    m = rig.read()
+    assert m.p_a == pytest.approx(3.01) and m.p_b == pytest.approx(2.0) and m.p_s == pytest.approx(8.0)
+    assert m.torque == pytest.approx(0.5) and m.theta == pytest.approx(math.pi / 2)
+    applied = rig.write(Command(3.0, 2.5, 4.0, 9.5))
+    assert applied == Command(3.0, 2.5, 4.0, 9.0)  # u_b's range is 1–9 V in this wiring
+    assert card.analog_out == {3: 3.0, 1: 2.5, 0: 4.0, 2: 9.0} and card.reloads >= 2
+    # the loop was late: the board expired and set the safe outputs itself; the backend says so
+    card.expire()
+    with pytest.raises(WatchdogExpired):
+        rig.write(Command(3.0, 2.5, 4.0, 6.0))
+    assert card.analog_out == card.expiration
+    rig.deactivate()
+    assert card.opened is None and card.watchdog is None
+
+
+def test_without_the_vendor_api_the_quanser_backend_says_what_to_install() -> None:
+    try:
+        import quanser.hardware  # type: ignore[import-not-found]  # noqa: F401
+    except ImportError:
+        with pytest.raises(RuntimeError, match="not on PyPI") as info:
+            load_hil()
+        assert str(info.value) == MISSING
+    else:  # pragma: no cover - a machine with QUARC
+        assert load_hil() is not None
+
+
+# ------------------------------------------------------------------ replay
+
+
+def _recorded_run(tmp_path: Path) -> Path:
+    from app.engine.constants import BAR, P_ATM
+    from app.engine.control.interaction import InteractionController
+    from app.engine.hardware.sim import SimulatedRig
+    from app.engine.human import isotonic
+    from app.engine.loop import Engine
+    from app.engine.runlog import RunLogWriter
+
+    clock = SimClock()
+    sim = SimulatedRig(clock, pw_bar=3.0)
+    sim.set_program(isotonic(+1, repetitions=1))
+    log = RunLogWriter(tmp_path, "rec", {"rig": "rotary", "sample_rate_hz": 200.0, "p_atm_bar": P_ATM / BAR,
+                                         "working_pressure_bar": 3.0, "experiment": "workout", "human": True})
+    eng = Engine(sim, InteractionController(controller="default", pw_bar=3.0), clock, 200.0, recorder=log)
+    sim.activate()
+    eng.run_for(3.0)
+    log.close()
+    return log.csv_path
+
+
+def test_the_replay_backend_plays_a_log_as_the_rig_on_its_clock(tmp_path: Path) -> None:
+    import numpy as np
+
+    from app.engine.hardware.replay import ReplayRig
+
+    path = _recorded_run(tmp_path)
+    rows = np.loadtxt(path, delimiter=",", skiprows=1)
+    clock = SimClock()
+    rig = ReplayRig(path, clock)
+    rig.activate()
+    clock.sleep_until(clock.now() + 1.0)
+    m = rig.read()
+    i = int(np.searchsorted(rows[:, 0] - rows[0, 0], 1.0, side="right")) - 1
+    assert (m.p_a, m.p_b, m.theta, m.torque) == (rows[i, 5], rows[i, 6], rows[i, 8], rows[i, 10])
+    assert rig.logged_command == Command(*rows[i, 1:5])
+    assert rig.write(Command(11.0, 2.0, 5.0, 5.0)) == Command(10.0, 2.0, 5.0, 5.0)  # clipped, not acted on
+    clock.sleep_until(clock.now() + 100.0)
+    assert rig.read().theta == rows[-1, 8]  # holds the last sample
+    looping = ReplayRig(path, clock, loop=True)
+    looping.activate()
+    clock.sleep_until(clock.now() + rig.duration + 1.0)
+    # one lap later it plays backwards: at 1 s before the end of the second lap, the sample of 1 s
+    clock.sleep_until(clock.now() + rig.duration - 2.0)
+    back = looping.read()
+    assert back.theta == m.theta and back.omega == -m.omega
+
+
+def test_a_replayed_log_drives_the_station_like_a_rig(tmp_path: Path) -> None:
+    from app.engine.station import Station
+
+    path = _recorded_run(tmp_path)
+    cfg = HardwareConfig(backend="replay", replay=ReplaySource(log=str(path), loop=True))
+    st = Station(hardware=cfg, data_dir=tmp_path / "data")
+    try:
+        st.connect()
+        time.sleep(4.0)  # past the log's end (3 s): it turns and plays backwards, seamlessly
+        assert st.status()["backend"] == "replay" and st.state.value == "idle", st.fault_message
+        assert len(st.live.since(-1.0, 10_000)) > 50
+    finally:
+        st.close()
+
+
+# ------------------------------------------------------------------ by configuration, and calibration
+
+
+def test_the_backend_is_chosen_by_the_configuration_file_alone(tmp_path: Path) -> None:
+    from fastapi.testclient import TestClient
+
+    from app.api.main import create_app
+    from app.api.settings import Settings
+
+    path = _recorded_run(tmp_path)
+    hw = tmp_path / "hw.yaml"
+    save_config(HardwareConfig(backend="replay", replay=ReplaySource(log=str(path))), hw)
+    app = create_app(Settings(data_dir=str(tmp_path / "d"), viser_port=0, hardware=str(hw)))
+    with TestClient(app) as c:
+        st = c.get("/api/engine").json()
+        assert st["state"] == "idle" and st["backend"] == "replay"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("backend: quanser\nquanser: {watchdog_s: -1}\n")
+    from app.engine.params import ParameterError
+
+    with pytest.raises(ParameterError, match=r"quanser\.watchdog_s"):
+        with TestClient(create_app(Settings(data_dir=str(tmp_path / "e"), viser_port=0, hardware=str(bad)))):
+            pass
+
+
+def test_calibration_zeroes_the_torque_pressures_and_encoder_and_saves_them_with_the_date(tmp_path: Path) -> None:
+    import datetime
+
+    from app.engine.human import HumanProgram, isotonic
+    from app.engine.station import Station, TransitionError
+    from tests.test_hardware_modbus import HILFactory
+
+    # the rig reads with offsets the configuration does not know yet: the plant side's scaling is
+    # the truth, the station's copy is miscalibrated by 0.08 N·m, 0.05 / -0.04 bar and 37 counts
+    truth = HardwareConfig(backend="modbus")
+    wrong = truth.model_copy(update={
+        "inputs": truth.inputs.model_copy(update={
+            "torque": truth.inputs.torque.model_copy(update={"offset": 0.08}),
+            "p_a": truth.inputs.p_a.model_copy(update={"offset": 0.05}),
+            "p_b": truth.inputs.p_b.model_copy(update={"offset": -0.04})}),
+        "encoder": truth.encoder.model_copy(update={"zero_counts": -37})})
+    hw = tmp_path / "hw.yaml"
+    save_config(wrong, hw)
+    factory = HILFactory(station_config=load_config(hw))
+    st = Station(factory, data_dir=tmp_path / "d", hardware=load_config(hw), hardware_path=hw)
+    try:
+        with pytest.raises(TransitionError, match=r"not connected|connect"):
+            st.calibrate("torque_zero")
+        st.connect()
+        time.sleep(3.0)  # the chambers vent to atmosphere at idle
+        before = st.live.latest()
+        r = st.calibrate("torque_zero", seconds=0.5)
+        assert r["after"]["torque_offset_nm"] == pytest.approx(0.0, abs=0.01)
+        r = st.calibrate("pressure_offsets", seconds=0.5)
+        assert r["after"]["p_a_offset_bar"] == pytest.approx(0.0, abs=0.01)
+        assert r["after"]["p_b_offset_bar"] == pytest.approx(0.0, abs=0.01)
+        r = st.calibrate("encoder_zero", seconds=0.5)
+        assert r["after"]["zero_counts"] == 0
+        saved = load_config(hw)
+        today = datetime.date.today().isoformat()
+        assert saved.calibration.torque_zero == saved.calibration.pressure_offsets == today
+        assert saved.calibration.encoder_zero == today and saved.encoder.zero_counts == 0
+        assert st.status()["calibration"]["torque_zero"] == today
+        time.sleep(0.2)
+        after = st.live.latest()
+        assert before is not None and after is not None
+        from app.engine.station import LIVE_COLUMNS
+
+        tq = LIVE_COLUMNS.index("torque")
+        assert abs(after[tq]) < 0.03 < abs(before[tq])  # the live reading is zeroed at once
+        # a rig that is not at rest is refused, and nothing changes
+        from app.engine.params import ParameterError
+
+        plant = factory.servers[-1].rig
+        prog = isotonic(+1, repetitions=4)
+        plant.set_program(HumanProgram(prog.t + plant.sim.t, prog.pos))  # someone turns the handle
+        time.sleep(2.5)
+        with pytest.raises(ParameterError, match="hold it still"):
+            st.calibrate("encoder_zero", seconds=0.5)
+        assert load_config(hw) == saved
+    finally:
+        st.close()
+        factory.close()
+
+
+def test_calibrating_the_simulator_is_refused_with_the_reason(tmp_path: Path) -> None:
+    from fastapi.testclient import TestClient
+
+    from app.api.main import create_app
+    from app.api.settings import Settings
+
+    with TestClient(create_app(Settings(data_dir=str(tmp_path), viser_port=0))) as c:
+        assert c.get("/api/engine").json()["calibration"] is None  # the simulator has no sensor scaling
+        r = c.post("/api/engine/calibrate", json={"what": "torque_zero"})
+        assert r.status_code == 409 and "no sensor scaling" in r.json()["detail"]
+        r = c.post("/api/engine/calibrate", json={"what": "gyro"})
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "what"
+
+
+def test_the_readme_example_configuration_is_valid(tmp_path: Path) -> None:
+    text = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    block = text.split("```yaml\n", 1)[1].split("```", 1)[0]
+    (tmp_path / "hw.yaml").write_text(block)
+    cfg = load_config(tmp_path / "hw.yaml")
+    assert cfg.backend == "modbus" and cfg.link().watchdog_register == 4096 and cfg.limits == {"p_max_bar": 6.0}
