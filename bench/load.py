@@ -26,5 +26,6 @@ if __name__ == "__main__":
     ap.add_argument("--rate", type=float, default=200.0, help="control rate [Hz]")
     ap.add_argument("--rps", type=float, default=0.0, help="REST requests per second during the watched phase")
     ap.add_argument("--seconds", type=float, default=8.0, help="length of each measured phase [s]")
+    ap.add_argument("--viser", type=int, default=None, help="how many of the pages are viser pages (default half)")
     a = ap.parse_args()
-    print(json.dumps(load(a.clients, seconds=a.seconds, rate_hz=a.rate, rps=a.rps), indent=1))
+    print(json.dumps(load(a.clients, seconds=a.seconds, rate_hz=a.rate, rps=a.rps, viser_clients=a.viser), indent=1))
