@@ -237,6 +237,8 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
         expect(page.locator("#state")).to_have_text("idle", timeout=60000)
         page.click("[data-action=start]")
         expect(page.locator("#state")).to_have_text("running", timeout=30000)
+        page.wait_for_timeout(1500)  # 1.5 s of the run (300 periods) before the therapist stops it
+        assert int(page.locator("#c-torque").get_attribute("data-samples") or 0) > 0  # live data came, with the token
         page.click("#stop")
         expect(page.locator("#state")).to_have_text("idle", timeout=30000)
         # the export link carries the token too (a plain link would get 401)
@@ -245,5 +247,5 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
         with page.expect_download() as dl:
             link.click()
         text = Path(dl.value.path()).read_text()
-        assert text.startswith("t,") and text.count("\n") > 10
+        assert text.startswith("t,") and text.count("\n") > 100  # ≥ 0.5 s of the run at 200 Hz
         assert "token" not in page.url and not errors, errors
