@@ -732,18 +732,36 @@ class Station:
 
     def _watcher(self) -> None:
         """Finishes work that ended by itself (off the engine thread)."""
+        fault_seen: float | None = None
         while not self._watch_stop.wait(0.05):
             with self._lock:
                 if self.state == State.FAULT:
-                    if self._job is not None:
+                    fault_seen = fault_seen or time.monotonic()
+                    # the record ends with the safe state in it: wait for a period after the fault
+                    # (at most 0.5 s: a dead loop will not log one)
+                    if self._job is not None and (self._safe_period_logged()
+                                                  or time.monotonic() - fault_seen > 0.5):
                         self._finish_run("fault")
                     if self._proc is not None:
                         self._abort_procedure("fault")
                     continue
+                fault_seen = None
                 if self._job is not None and self._job.done:
                     self._finish_run("complete")
                 elif self._proc is not None and self._proc.finished:
                     self._finish_procedure()
+
+    def _safe_period_logged(self) -> bool:
+        """Whether the log holds a period that began after the fault was latched (so wrote the safe state).
+
+        The fault's time is the measurement it was found in (or, for an
+        e-stop, the last one before the press); the period under way then may
+        still finish with its own command, so the one after it is awaited.
+        """
+        f, eng = self.safety.fault, self.engine
+        if f is None or eng is None or eng.last_measurement is None or not math.isfinite(f.t):
+            return True
+        return eng.last_measurement.t > f.t + 1.5 * eng.period
 
     def _finish_run(self, status: str) -> None:
         job, log = self._job, self._log
