@@ -145,9 +145,13 @@ def test_clients_vanishing_mid_run_leave_the_run_and_its_log_intact(tmp_path: Pa
     assert st["state"] == "running" and st["safety"]["fault"] is None
     assert srv.api("GET", "/api/sessions") == []
     srv.api("POST", "/api/engine/stop")
+    overruns = srv.api("GET", "/api/health")["overruns"]
     run = srv.api("GET", f"/api/runs/{run_id}")
     assert run["status"] == "stopped", run["status"]
     series = srv.api("GET", f"/api/runs/{run_id}/series")
     t = [r[series["columns"].index("t")] for r in series["rows"]]
     steps = [b - a for a, b in itertools.pairwise(t)]
-    assert len(t) > 200 and max(steps) < 1.5 / 200 and min(steps) > 0.5 / 200  # every period logged, none twice
+    # every period the loop ran is logged, none twice; a gap is only where the loop itself ran late
+    # and skipped a period (an overrun it counted), never a row lost to a vanished client
+    gaps = sum(step > 1.5 / 200 for step in steps)
+    assert len(t) > 200 and min(steps) > 0.5 / 200 and gaps <= overruns, (gaps, overruns, max(steps))
