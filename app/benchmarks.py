@@ -312,9 +312,9 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
     # priority it could be the very inversion the server threads avoid, so it ranks with them
     policy = os.sched_getscheduler(0) if hasattr(os, "sched_getscheduler") else None
     _serve_thread_priority(settings)
+    n_viser = clients // 2 if viser_clients is None else viser_clients
     try:
         quiet = phase()
-        n_viser = clients // 2 if viser_clients is None else viser_clients
         proc = subprocess.Popen([sys.executable, "-c", _CLIENTS, base, f"http://127.0.0.1:{vport}", str(clients),
                                  chromium, str(n_viser)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                                 preexec_fn=_normal_scheduling)  # browsers are ordinary programs
@@ -349,7 +349,7 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
                 os.sched_setscheduler(0, policy, os.sched_param(0))
             except OSError:
                 pass
-    return {"clients": clients, "viser_clients": clients // 2 if viser_clients is None else viser_clients,
+    return {"clients": clients, "viser_clients": n_viser,
             "rate_hz": rate_hz, "rps": rps, "requests": requests,
             "dashboards_drawing": drawn, "quiet": quiet, "watched": watched,
             "p99_ratio": watched["jitter_p99_ms"] / max(quiet["jitter_p99_ms"], 1e-9)}

@@ -292,14 +292,13 @@ def _serve(args: argparse.Namespace) -> int:
 
     from app.api.main import create_app
     from app.api.settings import Settings
+    from app.engine.params import validation_reasons
 
     try:
         extra = {"hardware": args.hardware} if args.hardware else {}
         settings = Settings(host=args.host, port=args.port, viser_port=args.viser_port, **extra)
     except ValidationError as exc:
-        reasons = (f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg'].removeprefix('Value error, ')}"
-               for e in exc.errors(include_input=False))
-        raise ValueError("; ".join(reasons)) from None
+        raise ValueError(validation_reasons(exc, "settings")) from None
     if settings.realtime:
         from app.engine.loop import make_server_realtime
 
@@ -307,10 +306,6 @@ def _serve(args: argparse.Namespace) -> int:
         why = make_server_realtime()
         if why:
             print(f"cwrr serve: normal scheduling ({why}); /api/health reports the loop's jitter", file=sys.stderr)
-    if settings.hardware:
-        from app.engine.hardware.config import load_config
-
-        load_config(settings.hardware)  # a wrong file is refused here, with the field named, not in the lifespan
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
     return 0
 

@@ -78,17 +78,14 @@ def presented_role(request: Request) -> Role | None:
 
 def caller_role(request: Request) -> Role:
     """The role of the caller, or an HTTP 401/403 that says what is missing."""
-    settings: Settings = request.app.state.settings
-    if not settings.auth_enabled:
-        if _client_is_remote(request):
-            raise HTTPException(403, "this station has no access tokens configured, so it serves this machine "
-                                     "only; set CWRR_ADMIN_TOKEN / CWRR_THERAPIST_TOKEN to admit remote clients")
-        return Role.ADMIN
-    role = _role_of(settings, request)
-    if role is None:
-        raise HTTPException(401, "sign in: send 'Authorization: Bearer <token>' (a therapist or admin token)",
-                            headers={"WWW-Authenticate": "Bearer"})
-    return role
+    role = presented_role(request)
+    if role is not None:
+        return role
+    if not request.app.state.settings.auth_enabled:  # no tokens, so refused only for being remote
+        raise HTTPException(403, "this station has no access tokens configured, so it serves this machine "
+                                 "only; set CWRR_ADMIN_TOKEN / CWRR_THERAPIST_TOKEN to admit remote clients")
+    raise HTTPException(401, "sign in: send 'Authorization: Bearer <token>' (a therapist or admin token)",
+                        headers={"WWW-Authenticate": "Bearer"})
 
 
 def require(needed: Role) -> Any:

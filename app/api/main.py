@@ -31,9 +31,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the app; the engine, store and viser server start and stop with the lifespan."""
     settings = settings or Settings()
 
+    # read here, not in the lifespan: a wrong file is refused with the field named before a server starts
+    hardware = load_config(settings.hardware) if settings.hardware else None
+
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        hardware = load_config(settings.hardware) if settings.hardware else None  # refused before anything opens
         store = Store(settings.db_url)
         station = Station(data_dir=settings.data_dir, sink=store,
                           rate_hz=hardware.rate_hz if hardware is not None else settings.rate_hz,

@@ -306,9 +306,17 @@ class Engine:
             link = isinstance(exc, (OSError, TimeoutError, ConnectionError))
             t = self.last_measurement.t if self.last_measurement is not None else math.nan
             trip("link_lost" if link else "engine_error", f"{type(exc).__name__}: {exc}", t)
+        self._write_safe(self._fault_command())
+
+    def _write_safe(self, cmd: Command) -> None:
+        """Write a safe command, tolerating a backend that cannot take it.
+
+        The link may be what failed or stalled; the DAQ's (or coupler's) own
+        watchdog then holds the safe outputs.
+        """
         try:
-            self.backend.write(self._fault_command())
-        except Exception:  # a dead link cannot take the safe command; the DAQ watchdog holds it
+            self.backend.write(cmd)
+        except Exception:
             pass
 
     def _fault_command(self) -> Command:
@@ -352,10 +360,7 @@ class Engine:
             if trip is not None:
                 trip("stall", f"the control loop completed no period for {late * 1e3:.0f} ms "
                      f"(watchdog: {self.stall_s * 1e3:.0f} ms)")
-            try:
-                self.backend.write(self._fault_command())
-            except Exception:  # the link may be what stalled; the DAQ watchdog is the backstop
-                pass
+            self._write_safe(self._fault_command())
 
     def _run(self) -> None:
         if self.want_realtime:
@@ -387,10 +392,7 @@ class Engine:
         if self._watchdog is not None:
             self._watchdog.join(timeout)
             self._watchdog = None
-        try:
-            self.backend.write(self.backend.safe_command())
-        except Exception:  # a lost link cannot take it; the DAQ's watchdog already holds the safe outputs
-            pass
+        self._write_safe(self.backend.safe_command())
 
     @property
     def running(self) -> bool:

@@ -27,6 +27,17 @@ class ParameterError(ValueError):
     """A parameter is outside its physically meaningful range."""
 
 
+def validation_reasons(exc: Any, whole: str) -> str:
+    """A pydantic ``ValidationError`` as ``field: why; …`` without the input values (they may be secrets).
+
+    Args:
+        exc: The error.
+        whole: What to call a check on the whole model (an error with no field).
+    """
+    return "; ".join(f"{'.'.join(map(str, e['loc'])) or whole}: {e['msg'].removeprefix('Value error, ')}"
+                     for e in exc.errors(include_input=False))
+
+
 def check_range(
     name: str,
     value: float,

@@ -196,7 +196,6 @@ class SafetySupervisor:
         self.safe = safe
         self._lock = threading.Lock()
         self._fault: Fault | None = None
-        self._safe_cmd = safe
         self.no_action = False
         self.faults_total = 0
         self._reset_state()
@@ -220,10 +219,9 @@ class SafetySupervisor:
     @property
     def fault_command(self) -> Command:
         """What the actuators get while a fault is latched."""
-        return self._safe_cmd
+        return self.safe
 
-    def trip(self, code: str, message: str, t: float = math.nan, channel: str = "",
-             safe: Command | None = None) -> Fault:
+    def trip(self, code: str, message: str, t: float = math.nan, channel: str = "") -> Fault:
         """Latch a fault (the first one wins: it is the cause, later ones are consequences).
 
         Safe to call from any thread; the engine applies it in its next period.
@@ -231,7 +229,6 @@ class SafetySupervisor:
         with self._lock:
             if self._fault is None:
                 self._fault = Fault(code, message, t, channel)
-                self._safe_cmd = safe or self.safe
                 self.faults_total += 1
             return self._fault
 
@@ -243,7 +240,6 @@ class SafetySupervisor:
         """
         with self._lock:
             self._fault = None
-            self._safe_cmd = self.safe
             self._reset_state()
 
     # ------------------------------------------------------------------ stage
@@ -255,8 +251,8 @@ class SafetySupervisor:
         self._prev = meas
         if self._fault is not None:
             self.no_action = False
-            self._prev_cmd = self._safe_cmd
-            return self._safe_cmd
+            self._prev_cmd = self.safe
+            return self.safe
         out = self._limit(cmd, meas)
         self._prev_cmd = out
         return out

@@ -569,12 +569,11 @@ class Station:
         Legal everywhere (never a :class:`TransitionError`): pressing it twice,
         or while disconnected, still leaves a latched fault to clear.
         """
-        self.safety.trip("estop", f"emergency stop ({source})",
-                         self.engine.last_measurement.t if self.engine and self.engine.last_measurement else math.nan)
+        fault = self.safety.trip("estop", f"emergency stop ({source})", self.engine.last_measurement.t
+                                 if self.engine and self.engine.last_measurement else math.nan)
         with self._lock:
             if self._state != State.FAULT:
-                self.fault_message = f"emergency stop ({source})" if self.safety.fault is None \
-                    else self.safety.fault.message
+                self.fault_message = fault.message  # the first fault latched, maybe an earlier one
                 self._state = State.FAULT
 
     def calibrate(self, what: str, seconds: float = 1.0, p_atm_bar: float = P_ATM / BAR) -> dict[str, Any]:

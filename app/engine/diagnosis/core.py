@@ -242,9 +242,10 @@ class Cancelled(Exception):
     """The diagnosis was asked to stop (``stop`` set); nothing was concluded."""
 
 
-def _check(stop: threading.Event | None) -> None:
+def raise_if_stopped(stop: threading.Event | None, what: str = "diagnosis") -> None:
+    """Raise :class:`Cancelled` once ``stop`` is set."""
     if stop is not None and stop.is_set():
-        raise Cancelled("the diagnosis was stopped before it finished")
+        raise Cancelled(f"the {what} was stopped before it finished")
 
 
 def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: dict[str, float] | None = None,
@@ -268,7 +269,7 @@ def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: 
     prefetch = getattr(family, "prefetch", None)
 
     def resid(x: np.ndarray) -> np.ndarray:
-        _check(stop)
+        raise_if_stopped(stop)
         v = fixed | _from_x(specs, x)
         if prefetch is not None:
             prefetch(preps, [v], effects)
@@ -463,7 +464,7 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     starts = [off, typ] if off != typ else [off]
     points = int(getattr(family, "grid_points", 0))
     if points and new:
-        _check(stop)
+        raise_if_stopped(stop)
         starts.append(_grid_start(family, calib, effects, ref.params, new, points, scales))
     f = fit(family, calib, effects, scales=scales, starts=starts, stop=stop)
     sc = score(family, held, f, blocks)

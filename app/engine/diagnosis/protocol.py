@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.engine.diagnosis.core import Cancelled
+from app.engine.diagnosis.core import raise_if_stopped
 from app.engine.diagnosis.logs import INPUTS, MEASURED, Experiment, write_log
 from app.engine.human import HumanProgram, isotonic
 from app.engine.params import PlantParams
@@ -198,8 +198,7 @@ def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: 
     for rep in range(repetitions):
         sch = {s.name: s for s in schedules(rep, scale)}
         for j, kind in enumerate(kinds):
-            if stop is not None and stop.is_set():
-                raise Cancelled("the protocol was stopped before it finished")
+            raise_if_stopped(stop, "protocol")
             sd = seed * 1000 + rep * 100 + j
             name = f"{kind}-{rep + 1}"
             if kind == "isotonic":

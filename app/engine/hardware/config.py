@@ -39,7 +39,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from app.engine.hardware.base import SAFE_COMMAND, Command
-from app.engine.params import ParameterError
+from app.engine.params import ParameterError, validation_reasons
 
 Volt = Annotated[float, Field(ge=-10.0, le=10.0, description="V")]
 
@@ -322,9 +322,7 @@ def parse_config(data: Any, source: str = "hardware configuration") -> HardwareC
     try:
         return HardwareConfig.model_validate(data)
     except ValidationError as exc:
-        why = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg'].removeprefix('Value error, ')}"
-                        for e in exc.errors(include_input=False))
-        raise ParameterError(f"{source}: {why}") from None
+        raise ParameterError(f"{source}: {validation_reasons(exc, 'config')}") from None
 
 
 def load_config(path: Path | str) -> HardwareConfig:
