@@ -68,7 +68,8 @@ def perf(duration: float = 60.0, ivp_duration: float = 2.0) -> dict[str, Any]:
     ctl = ControllerConfig(controller="fuzzy", pdra=True, tdra=True)
     run_workout(params, duration=1.0, control=ctl)  # warm-up: compile / load the cache
     best = float("inf")
-    for _ in range(3):
+    # best of five: the shared 2-core VM this runs on stalls single runs at random
+    for _ in range(5):
         t0 = time.perf_counter()
         run_workout(params, duration=duration, control=ctl)
         best = min(best, time.perf_counter() - t0)

@@ -137,7 +137,7 @@ def _advance_measure(
     t: float, x: np.ndarray, cmd: np.ndarray, k: Any, n: int, prog_t: np.ndarray, prog_pos: np.ndarray,
     out: np.ndarray, sc: Any, noise: np.ndarray, st: np.ndarray, dt: float, meas: np.ndarray,
 ) -> float:
-    work = np.empty(5 * pl.NN)
+    work = np.empty(pl.NWORK)
     jac = np.empty((pl.NN, pl.NN))
     for i in range(n):
         pl.step(t + i * k.h, x, cmd, k, prog_t, prog_pos, out, work, jac)
@@ -160,7 +160,7 @@ def _closed_loop(
     cmd4 = np.zeros(4)
     cmd = np.zeros(pl.NU)
     out = np.zeros(pl.NO)
-    work = np.empty(5 * pl.NN)
+    work = np.empty(pl.NWORK)
     jac = np.empty((pl.NN, pl.NN))
     t = 0.0
     for i in range(n_ticks):

@@ -172,8 +172,24 @@ def fuzzify(x: float, fz: np.ndarray, off: int, mu: np.ndarray) -> None:
         mu[k] = _tri(x, fz[off + 3 * k], fz[off + 3 * k + 1], fz[off + 3 * k + 2])
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _sort_inplace(a: np.ndarray, n: int) -> None:
+    """Insertion sort of ``a[:n]`` (n ≤ 25: no allocation, unlike ``np.sort``)."""
+    for i in range(1, n):
+        v = a[i]
+        j = i - 1
+        while j >= 0 and a[j] > v:
+            a[j + 1] = a[j]
+            j -= 1
+        a[j + 1] = v
+
+
+NWS_CENTROID = 25 + 16 + 5 + 5
+"""Scratch floats :func:`_centroid` uses (corners, sub-pieces, two line ends)."""
+
+
 @njit(cache=True, error_model="numpy")
-def _centroid(act: np.ndarray, fz: np.ndarray) -> float:
+def _centroid(act: np.ndarray, fz: np.ndarray, ws: np.ndarray) -> float:
     """Exact centre of gravity of max_k min(act_k, MF_k(y)) on the output axis.
 
     Between consecutive MF corners and cut crossings every clipped MF is a
@@ -181,7 +197,7 @@ def _centroid(act: np.ndarray, fz: np.ndarray) -> float:
     adding the lines' pairwise crossings makes it linear piece by piece, and
     each piece's area and moment are integrated exactly.
     """
-    pts = np.empty(25)
+    pts = ws[0:25]
     n = 0
     for k in range(5):
         if act[k] <= 0.0:
@@ -197,10 +213,11 @@ def _centroid(act: np.ndarray, fz: np.ndarray) -> float:
         n += 5
     if n == 0:
         return 0.0
-    xs = np.sort(pts[:n])
-    sub = np.empty(16)
-    v1 = np.empty(5)
-    v2 = np.empty(5)
+    _sort_inplace(pts, n)
+    xs = pts
+    sub = ws[25:41]
+    v1 = ws[41:46]
+    v2 = ws[46:51]
     num = 0.0
     den = 0.0
     for i in range(n - 1):
@@ -243,7 +260,8 @@ def _centroid(act: np.ndarray, fz: np.ndarray) -> float:
                         m += 1
         sub[m] = x2
         m += 1
-        ss = np.sort(sub[:m])
+        _sort_inplace(sub, m)
+        ss = sub
         for j in range(m - 1):
             u1 = ss[j]
             u2 = ss[j + 1]
@@ -282,11 +300,14 @@ def fuzzy_gains(e: float, de: float, fz: np.ndarray, out: np.ndarray) -> None:
         fz: Packed configuration (:meth:`FuzzyConfig.pack`).
         out: Three outputs, written.
     """
-    mu_e = np.empty(7)
-    mu_d = np.empty(7)
+    # one scratch block per call: the per-array allocations cost more than the inference
+    ws = np.empty(7 + 7 + 5 + NWS_CENTROID)
+    mu_e = ws[0:7]
+    mu_d = ws[7:14]
+    act = ws[14:19]
+    cws = ws[19:]
     fuzzify(e, fz, FZ_E, mu_e)
     fuzzify(de, fz, FZ_DE, mu_d)
-    act = np.zeros(5)
     centroid = fz[FZ_METHOD] > 0.5
     for g in range(3):
         for k in range(5):
@@ -300,7 +321,7 @@ def fuzzy_gains(e: float, de: float, fz: np.ndarray, out: np.ndarray) -> None:
                 if w > act[k]:
                     act[k] = w
         if centroid:
-            out[g] = _centroid(act, fz)
+            out[g] = _centroid(act, fz, cws)
         else:
             num = 0.0
             den = 0.0

@@ -91,7 +91,7 @@ def replay_pneumatics(k: Any, cmds: np.ndarray, theta: np.ndarray, omega: np.nda
     """
     x = x0.copy()
     n = cmds.shape[0]
-    work = np.empty(5 * pl.NN)
+    work = np.empty(pl.NWORK)
     jac = np.empty((pl.NN, pl.NN))
     o = np.zeros(pl.NO)
     cmd = np.zeros(pl.NU)

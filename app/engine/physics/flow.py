@@ -41,9 +41,27 @@ def iso6358_flow(pu: float, pd: float, c: float, b: float, tu: float) -> tuple[f
         (q, dq/dpu, dq/dpd): mass flow [kg/s] and its partial derivatives
         [kg/(s·Pa)].
     """
-    if c <= 0.0 or pu <= 0.0:
+    if c <= 0.0:
         return 0.0, 0.0, 0.0
-    k = c * RHO0_ISO * math.sqrt(T0_ISO / tu)
+    return iso6358_flow_k(pu, pd, c * RHO0_ISO * math.sqrt(T0_ISO / tu), b)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def iso6358_flow_k(pu: float, pd: float, k: float, b: float) -> tuple[float, float, float]:
+    """:func:`iso6358_flow` with the choked-flow gain precomputed.
+
+    The simulator's inner loop calls this: with isothermal gas the square
+    root of the temperature ratio is a constant, so it is not recomputed
+    every substep.
+
+    Args:
+        pu: Upstream pressure [Pa abs].
+        pd: Downstream pressure [Pa abs].
+        k: c·ρ0·√(T0/T_u), choked mass flow per pascal upstream [kg/(s·Pa)].
+        b: Critical pressure ratio [-].
+    """
+    if k <= 0.0 or pu <= 0.0:
+        return 0.0, 0.0, 0.0
     r = pd / pu
     if r <= b:
         return k * pu, k, 0.0
@@ -71,6 +89,15 @@ def iso6358_signed(p1: float, p2: float, c: float, b: float, t1: float, t2: floa
     if p1 >= p2:
         return iso6358_flow(p1, p2, c, b, t1)
     q, dq_du, dq_dd = iso6358_flow(p2, p1, c, b, t2)
+    return -q, -dq_dd, -dq_du
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def iso6358_signed_k(p1: float, p2: float, k1: float, k2: float, b: float) -> tuple[float, float, float]:
+    """:func:`iso6358_signed` with the gains c·ρ0·√(T0/T) of both ends precomputed."""
+    if p1 >= p2:
+        return iso6358_flow_k(p1, p2, k1, b)
+    q, dq_du, dq_dd = iso6358_flow_k(p2, p1, k2, b)
     return -q, -dq_dd, -dq_du
 
 

@@ -39,10 +39,18 @@ import numpy as np
 from numba import njit
 
 from app.engine import tables
-from app.engine.constants import BAR, CP_AIR, CV_AIR, R_AIR
+from app.engine.constants import BAR, CP_AIR, CV_AIR, R_AIR, RHO0_ISO, T0_ISO
 from app.engine.params import PlantParams, RotaryFriction, conductance_si
 from app.engine.physics.dcv_maps import derive_new_model_maps
-from app.engine.physics.flow import interp2_clip, interp_clip, iso6358_signed, new_model_flow, null_scale, polyval
+from app.engine.physics.flow import (
+    interp2_clip,
+    interp_clip,
+    iso6358_signed,
+    iso6358_signed_k,
+    new_model_flow,
+    null_scale,
+    polyval,
+)
 
 # ----------------------------------------------------------------- state layout
 I_POS = 0  # θ [rad] or x [m]
@@ -65,6 +73,7 @@ NX = 20
 # node indices inside the mass block
 N_OA, N_TA, N_CA, N_OB, N_TB, N_CB = 0, 1, 2, 3, 4, 5
 NN = 6
+NWORK = 6 * NN  # floats of scratch :func:`step` needs
 
 # command vector
 C_ZA, C_ZB, C_UA, C_UB, C_DPA, C_DPB = 0, 1, 2, 3, 4, 5
@@ -84,7 +93,8 @@ _KERNEL_FIELDS = (
     "fr", "fr_j",
     "lugre_on", "sigma0", "sigma1",
     "p_atm", "t_atm",
-    "prv_cs", "prv_bs", "prv_ce", "prv_be", "prv_gain", "prv_tau", "prv_db_on", "prv_db_off", "prv_vol", "z_max",
+    "prv_cs", "prv_bs", "prv_ce", "prv_be", "prv_gain", "prv_tau", "prv_decay",
+    "prv_db_on", "prv_db_off", "prv_vol", "z_max",
     "dcv_new", "dcv_c", "dcv_b", "ul_f", "ul_e", "null_s0", "null_w", "mp",
     "nm_u", "nm_ps", "nm_af", "nm_ae", "nm_ef", "nm_ee", "nm_gf", "nm_ge", "nm_kf", "nm_ke", "nm_usw",
     "ps0", "droop_on", "droop_r", "droop_tau",
@@ -165,6 +175,7 @@ def _build_kernel_cached(p: PlantParams) -> Any:
         prv_cs=conductance_si(p.prv.c_supply), prv_bs=p.prv.b_supply,
         prv_ce=conductance_si(p.prv.c_exhaust), prv_be=p.prv.b_exhaust,
         prv_gain=p.prv.gain_per_bar / BAR, prv_tau=p.prv.tau_spool,
+        prv_decay=math.exp(-(1.0 / p.substep_hz) / p.prv.tau_spool),
         prv_db_on=p.prv.deadband_on_bar * BAR, prv_db_off=p.prv.deadband_off_bar * BAR,
         prv_vol=p.prv.outlet_volume, z_max=p.prv.z_max_v,
         dcv_new=dcv.model == "new", dcv_c=dcv_c, dcv_b=dcv.b,
@@ -252,7 +263,15 @@ def area_frac(disp_v: float, mp: np.ndarray) -> float:
     """
     if disp_v <= 0.0:
         return 0.0
-    return interp_clip(disp_v, mp[0], mp[1])
+    # the MPYE table is on a uniform grid: index it directly, no search
+    g = mp[0]
+    n = g.shape[0]
+    if disp_v >= g[n - 1]:
+        return mp[1, n - 1]
+    step = g[1] - g[0]
+    i = min(int((disp_v - g[0]) / step), n - 2)
+    w = (disp_v - g[i]) / step
+    return mp[1, i] + w * (mp[1, i + 1] - mp[1, i])
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -264,11 +283,21 @@ def stribeck_params(p_lookup_bar: float, positive: bool, fr: np.ndarray) -> tupl
     """
     o = 1 if positive else 5
     g = fr[0]
+    n = g.shape[0]
+    # one search for the four rows: they share the pressure grid
+    if n == 1 or p_lookup_bar <= g[0]:
+        return fr[o, 0], fr[o + 1, 0], fr[o + 2, 0], fr[o + 3, 0]
+    if p_lookup_bar >= g[n - 1]:
+        return fr[o, n - 1], fr[o + 1, n - 1], fr[o + 2, n - 1], fr[o + 3, n - 1]
+    lo = 0
+    while lo < n - 2 and g[lo + 1] <= p_lookup_bar:
+        lo += 1
+    w = (p_lookup_bar - g[lo]) / (g[lo + 1] - g[lo])
     return (
-        interp_clip(p_lookup_bar, g, fr[o]),
-        interp_clip(p_lookup_bar, g, fr[o + 1]),
-        interp_clip(p_lookup_bar, g, fr[o + 2]),
-        interp_clip(p_lookup_bar, g, fr[o + 3]),
+        fr[o, lo] + w * (fr[o, lo + 1] - fr[o, lo]),
+        fr[o + 1, lo] + w * (fr[o + 1, lo + 1] - fr[o + 1, lo]),
+        fr[o + 2, lo] + w * (fr[o + 2, lo + 1] - fr[o + 2, lo]),
+        fr[o + 3, lo] + w * (fr[o + 3, lo + 1] - fr[o + 3, lo]),
     )
 
 
@@ -276,7 +305,15 @@ def stribeck_params(p_lookup_bar: float, positive: bool, fr: np.ndarray) -> tupl
 def stribeck_curve(speed: float, ts: float, tc: float, ws: float, b: float, j: float) -> float:
     """Stribeck magnitude T_c + (T_s − T_c)·exp(−(|ω|/ω_s)^j) + B·|ω| (Eq 3.12)."""
     s = abs(speed)
-    return tc + (ts - tc) * math.exp(-((s / ws) ** j)) + b * s
+    return tc + (ts - tc) * stribeck_decay(s / ws, j) + b * s
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def stribeck_decay(s: float, j: float) -> float:
+    """exp(−s^j) for s = |ω|/ω_s ≥ 0; j = 2 (the thesis's shape) without ``pow``."""
+    if j == 2.0:
+        return math.exp(-s * s)
+    return math.exp(-(s**j))
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -375,20 +412,26 @@ def pneumatic_flows(
     patm = k.p_atm
     ta = k.t_atm
     q_sup = 0.0
+    # √(T0/T) per end: only the chambers leave atmospheric temperature
+    rta = math.sqrt(T0_ISO / ta)
     for side in range(2):
         o = 3 * side
         n_o, n_t, n_c = o + N_OA, o + N_TA, o + N_CA
+        rtc = math.sqrt(T0_ISO / tn[n_c]) if k.heat_on else rta
         spool = x[I_XA + side]
         # PRV: supply → O (spool > 0) or O → exhaust (spool < 0)
         if spool > 0.0:
-            q, d1, d2 = iso6358_signed(ps, p[n_o], k.prv_cs * spool, k.prv_bs, ta, tn[n_o])
+            kq = k.prv_cs * spool * RHO0_ISO * rta
+            q, d1, d2 = iso6358_signed_k(ps, p[n_o], kq, kq, k.prv_bs)
             _edge(-1, n_o, q, d1, d2, f, jac)
             q_sup += q
         elif spool < 0.0:
-            q, d1, d2 = iso6358_signed(p[n_o], patm, k.prv_ce * (-spool), k.prv_be, tn[n_o], ta)
+            kq = k.prv_ce * (-spool) * RHO0_ISO * rta
+            q, d1, d2 = iso6358_signed_k(p[n_o], patm, kq, kq, k.prv_be)
             _edge(n_o, -1, q, d1, d2, f, jac)
         # DCV port: O ↔ D and D → exhaust, D = tube node or chamber
         n_d = n_t if k.tube_on else n_c
+        rtd = rta if k.tube_on else rtc
         u = x[I_UA + side]
         if side == 1:
             u = 10.0 - u  # port 4 of DCV-b fills above 5 V: mirror onto port-2 convention
@@ -413,10 +456,12 @@ def pneumatic_flows(
             fr_f = s_null * area_frac(5.0 + k.ul_f - u, k.mp)
             fr_e = s_null * area_frac(u - (5.0 - k.ul_e), k.mp)
             if fr_f > 0.0:
-                q, d1, d2 = iso6358_signed(p[n_o], p[n_d], k.dcv_c * fr_f, k.dcv_b, tn[n_o], tn[n_d])
+                kq = k.dcv_c * fr_f * RHO0_ISO
+                q, d1, d2 = iso6358_signed_k(p[n_o], p[n_d], kq * rta, kq * rtd, k.dcv_b)
                 _edge(n_o, n_d, q, d1, d2, f, jac)
             if fr_e > 0.0:
-                q, d1, d2 = iso6358_signed(p[n_d], patm, k.dcv_c * fr_e, k.dcv_b, tn[n_d], ta)
+                kq = k.dcv_c * fr_e * RHO0_ISO
+                q, d1, d2 = iso6358_signed_k(p[n_d], patm, kq * rtd, kq * rta, k.dcv_b)
                 _edge(n_d, -1, q, d1, d2, f, jac)
         # tube: laminar resistance between tube node and chamber
         if k.tube_on:
@@ -517,7 +562,7 @@ def step(
         prog_t: User program time breakpoints [s].
         prog_pos: Intended position at those times [rad or m].
         out: Outputs (NO): T_i, T_f, T_p [N·m or N], supply flow [kg/s].
-        work: Scratch, at least 4·NN floats.
+        work: Scratch, at least NWORK floats.
         jac: Scratch NN×NN.
     """
     h = k.h
@@ -537,25 +582,47 @@ def step(
     tn = work[NN : 2 * NN]
     p = work[2 * NN : 3 * NN]
     f = work[3 * NN : 4 * NN]
+    dpdm = work[5 * NN : 6 * NN]
     _vol_temps(x, x[I_POS], k.prv_vol, k.tube_vol, k.vd_a, k.vd_b, k.area_a, k.area_b, k.pos_min, k.pos_max,
                k.heat_on, k.t_atm, vol, tn)
     for i in range(NN):
-        p[i] = x[I_M0 + i] * R_AIR * tn[i] / vol[i]
-    decay = math.exp(-h / k.prv_tau)
+        dpdm[i] = R_AIR * tn[i] / vol[i]
+        p[i] = x[I_M0 + i] * dpdm[i]
+    decay = k.prv_decay
     for s in range(2):
         p_set = k.p_atm + min(max(x[I_ZA + s], 0.0), k.z_max) * BAR + cmd[C_DPA + s]
         regulator_update(x, s, p_set, p[N_OA + 3 * s], k.prv_gain, k.prv_db_on, k.prv_db_off, decay)
     # 2. gas masses, linearly implicit Euler
     q_sup = pneumatic_flows(p, tn, x, k, f, jac)
-    for i in range(NN):
-        dpdm = R_AIR * tn[i] / vol[i]
-        for r in range(NN):
-            jac[r, i] = -h * jac[r, i] * dpdm
-        jac[i, i] += 1.0
     dm = work[4 * NN : 5 * NN]
-    for i in range(NN):
-        dm[i] = h * f[i]
-    _solve_inplace(jac, dm)
+    if k.tube_on or k.vl_c > 0.0:
+        for i in range(NN):
+            g = -h * dpdm[i]
+            for r in range(NN):
+                jac[r, i] *= g
+            jac[i, i] += 1.0
+        for i in range(NN):
+            dm[i] = h * f[i]
+        _solve_inplace(jac, dm)
+    else:
+        # Without tubes or vane leakage the network is two uncoupled pairs
+        # (O_j, C_j) and two idle tube nodes: solve each 2×2 by Cramer's rule
+        # (same result as the general elimination, a third of its time).
+        for s in range(2):
+            o = 3 * s + N_OA
+            c = 3 * s + N_CA
+            go = -h * dpdm[o]
+            gc = -h * dpdm[c]
+            a00 = 1.0 + jac[o, o] * go
+            a01 = jac[o, c] * gc
+            a10 = jac[c, o] * go
+            a11 = 1.0 + jac[c, c] * gc
+            b0 = h * f[o]
+            b1 = h * f[c]
+            inv = 1.0 / (a00 * a11 - a01 * a10)
+            dm[o] = (b0 * a11 - a01 * b1) * inv
+            dm[c] = (a00 * b1 - a10 * b0) * inv
+            dm[3 * s + N_TA] = h * f[3 * s + N_TA]
     for i in range(NN):
         m_new = x[I_M0 + i] + dm[i]
         x[I_M0 + i] = m_new if m_new > 1e-12 else 1e-12
@@ -645,7 +712,7 @@ def _moreau_mech(
     direction = w > 0.0 or (w == 0.0 and drive > 0.0)
     sgn = 1.0 if direction else -1.0
     ts, tc, ws, b = stribeck_params(p_lu, direction, fr)
-    tcs = tc + (ts - tc) * math.exp(-((abs(w) / ws) ** fr_j))
+    tcs = tc + (ts - tc) * stribeck_decay(abs(w) / ws, fr_j)
     w_free = w + h * drive / inertia
     w_new = (w_free - sgn * h * tcs / inertia) / (1.0 + h * b / inertia)
     if w_new * sgn <= 0.0:
@@ -676,7 +743,7 @@ def _lugre_mech(
         w = x[I_VEL]
         direction = w > 0.0 or (w == 0.0 and drive > 0.0)
         ts, tc, ws, b = stribeck_params(p_lu, direction, fr)
-        g = tc + (ts - tc) * math.exp(-((abs(w) / ws) ** fr_j))
+        g = tc + (ts - tc) * stribeck_decay(abs(w) / ws, fr_j)
         z = x[I_ZF]
         # implicit in z for the |ω|-dependent relaxation (stiff at speed)
         z_new = (z + dt * w) / (1.0 + dt * sigma0 * abs(w) / g)
@@ -703,7 +770,7 @@ def advance(
     out: np.ndarray,
 ) -> float:
     """Advance ``n`` substeps holding ``cmd`` (zero-order hold); returns new t."""
-    work = np.empty(5 * NN)
+    work = np.empty(NWORK)
     jac = np.empty((NN, NN))
     for i in range(n):
         step(t + i * k.h, x, cmd, k, prog_t, prog_pos, out, work, jac)
