@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from app.engine.hardware.base import Command
+from app.engine.hardware.base import Command, Measurement
 from app.engine.hardware.config import (
     AnalogIn,
     AnalogOut,
@@ -39,7 +39,14 @@ class FakeHIL:
     card. The board's state is kept so a test can look at it.
     """
 
-    def __init__(self) -> None:
+    INFINITE = -1
+    HARDWARE_CLOCK_0 = 0
+    OVERWRITE_ON_OVERFLOW = 2
+    TASK_CONSTANTS = (HARDWARE_CLOCK_0, OVERWRITE_ON_OVERFLOW)
+
+    def __init__(self, clock_ratio: float = 1.0) -> None:
+        self.clock_ratio = clock_ratio  # the board's clock against the computer's (1.02: 2 % fast)
+        self.task: dict[str, Any] | None = None
         self.opened: tuple[str, str] | None = None
         self.analog_in = {0: 0.0, 1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0, 5: 0.0, 6: 0.0, 7: 0.0}
         self.encoder = {0: 0, 1: 0}
@@ -107,16 +114,70 @@ class FakeHIL:
     def watchdog_clear(self) -> None:
         self.expired = False
 
+    # hardware-timed reader task: samples are taken at t0 + k / (frequency · clock_ratio) on the board's clock
+    def task_create_reader(self, samples_in_buffer: int, analog_channels: Any, num_analog_channels: int,
+                           encoder_channels: Any, num_encoder_channels: int, digital_channels: Any,
+                           num_digital_channels: int, other_channels: Any, num_other_channels: int) -> str:
+        assert self.opened and self.task is None and samples_in_buffer >= 1
+        self._check(analog_channels, num_analog_channels, None, None)
+        self._check(encoder_channels, num_encoder_channels, None, None)
+        assert num_digital_channels == 0 and num_other_channels == 0
+        self.task = {"buffer": samples_in_buffer, "ai": list(analog_channels), "enc": list(encoder_channels),
+                     "started": None, "taken": 0, "overwrite": False, "dropped": 0}
+        return "task-0"
+
+    def task_set_buffer_overflow_mode(self, task: str, mode: int) -> None:
+        assert self.task is not None and task == "task-0" and self.task["started"] is None
+        self.task["overwrite"] = mode == self.OVERWRITE_ON_OVERFLOW
+
+    def task_start(self, task: str, clock: int, frequency: float, num_samples: int) -> None:
+        assert self.task is not None and task == "task-0" and clock == self.HARDWARE_CLOCK_0
+        assert frequency > 0 and num_samples == self.INFINITE
+        self.task |= {"started": time.monotonic(), "frequency": frequency}
+
+    def task_read(self, task: str, num_samples: int, analog_buffer: Any, encoder_buffer: Any,
+                  digital_buffer: Any, other_buffer: Any) -> int:
+        t = self.task
+        assert t is not None and task == "task-0" and t["started"] is not None and num_samples == 1
+        assert isinstance(analog_buffer, array.array) and analog_buffer.typecode == "d"
+        assert len(analog_buffer) == len(t["ai"]) and digital_buffer is None and other_buffer is None
+        period = 1.0 / (t["frequency"] * self.clock_ratio)
+        now = time.monotonic()
+        sampled = int((now - t["started"]) / period)  # samples the board has taken so far
+        if sampled - t["taken"] > t["buffer"]:
+            if not t["overwrite"]:
+                raise RuntimeError("HIL task buffer overflow (the driver's default mode)")
+            t["dropped"] += sampled - t["taken"] - t["buffer"]
+            t["taken"] = sampled - t["buffer"]
+        due = t["started"] + (t["taken"] + 1) * period
+        if now < due:  # the driver blocks until the board has taken the sample
+            time.sleep(due - now)
+        t["taken"] += 1
+        for i, ch in enumerate(t["ai"]):
+            analog_buffer[i] = self.analog_in[ch]
+        for i, ch in enumerate(t["enc"]):
+            encoder_buffer[i] = self.encoder[ch]
+        return 1
+
+    def task_stop(self, task: str) -> None:
+        assert self.task is not None and task == "task-0"
+        self.task["started"] = None
+
+    def task_delete(self, task: str) -> None:
+        assert self.task is not None and self.task["started"] is None, "stop the task before deleting it"
+        self.task = None
+
     def expire(self) -> None:
         """What the board does when nobody reloads its watchdog in time."""
         self.expired = True
         self.analog_out.update(self.expiration)
 
 
-def _wired() -> HardwareConfig:
+def _wired(timing: str = "immediate") -> HardwareConfig:
     # deliberately not 0-1-2-3: the map must be followed, not assumed
     return HardwareConfig(
-        backend="quanser", quanser=QuanserCard(card_type="q8_usb", card_id="0", watchdog_s=0.05),
+        backend="quanser", quanser=QuanserCard(card_type="q8_usb", card_id="0", watchdog_s=0.05,
+                                               timing=timing),  # type: ignore[arg-type]
         inputs=Inputs(p_a=AnalogIn(channel=5, gain=2.0, offset=0.01), p_b=AnalogIn(channel=2, gain=2.0),
                       p_s=AnalogIn(channel=7, gain=2.0), torque=AnalogIn(channel=0, gain=1.0, offset=-0.05)),
         encoder=EncoderIn(channel=1, counts_per_rev=4096, sign=-1, zero_counts=100),
@@ -148,6 +209,79 @@ def test_the_quanser_backend_maps_and_scales_every_channel_through_the_vendor_ca
     assert card.analog_out == card.expiration
     rig.deactivate()
     assert card.opened is None and card.watchdog is None
+
+
+@pytest.mark.serial  # it times a paced second on the wall clock: a busy neighbour would be measured with it
+def test_the_quanser_board_clock_sets_the_loop_period_in_task_mode() -> None:
+    """Hardware-timed (the default): a reader task at the loop rate on the board's clock, the engine
+    never sleeps. The stand-in's clock runs 2 % fast: a loop paced by the computer would hold 200 Hz,
+    this one follows the board to 204 Hz."""
+    from app.engine.control.interaction import InteractionController
+    from app.engine.loop import Engine, WallClock
+
+    card = FakeHIL(clock_ratio=1.02)
+    cfg = _wired("task")
+    clock = WallClock()
+    rig = QuanserRig(cfg, clock, 0.005, hil_class=lambda: card, task_constants=FakeHIL.TASK_CONSTANTS)
+    assert rig.paced_by_hardware
+    ctl = InteractionController(controller="default", pw_bar=3.0)
+    ctl.step(Measurement(0.0, 3.0, 3.0, 6.0, 0.0, 0.0, 0.0), 0.005)  # compiled before the board starts
+    rig.activate()
+    assert card.task is not None and card.task["frequency"] == pytest.approx(200.0)
+    assert card.task["buffer"] == 20  # task_buffer_s 0.1 s at 200 Hz
+    card.analog_in.update({5: 1.5, 2: 1.0, 7: 4.0, 0: 0.55})
+    slept: list[float] = []
+    real_sleep = clock.sleep_until
+    clock.sleep_until = lambda t: (slept.append(t), real_sleep(t))  # type: ignore[method-assign]
+    eng = Engine(rig, ctl, clock, 200.0)
+    t0 = time.monotonic()
+    eng.run_for(1.0)  # 200 periods of the board's clock
+    wall = time.monotonic() - t0
+    assert not slept, "the engine slept: the board's clock should pace the loop"
+    assert card.task["taken"] == 200 and card.task["dropped"] == 0
+    assert wall == pytest.approx(1.0 / 1.02, abs=0.03)
+    st = eng.stats()
+    assert st.measured_rate_hz == pytest.approx(204.0, rel=0.02)
+    assert eng.last_measurement is not None and eng.last_measurement.p_a == pytest.approx(3.01)
+    assert st.jitter_p50_ms < 1.0  # interval between samples against the period (the board's clock is 2 % fast)
+    rig.deactivate()
+    assert card.task is None and card.opened is None  # task stopped and deleted before the card closed
+
+
+def test_a_held_up_quanser_loop_reads_the_newest_samples_instead_of_failing() -> None:
+    card = FakeHIL()
+    rig = QuanserRig(_wired("task"), SimClock(), 0.005, hil_class=lambda: card, task_constants=FakeHIL.TASK_CONSTANTS)
+    rig.activate()
+    rig.read()
+    time.sleep(0.3)  # 60 samples taken meanwhile, 20 buffered
+    t0 = time.monotonic()
+    for _ in range(20):
+        rig.read()  # the buffered backlog: no waiting
+    assert time.monotonic() - t0 < 0.05
+    assert card.task is not None and card.task["dropped"] >= 35
+    rig.deactivate()
+
+
+def test_in_immediate_mode_the_quanser_backend_reads_on_the_engines_clock() -> None:
+    card = FakeHIL()
+    rig = QuanserRig(_wired("immediate"), SimClock(), 0.005, hil_class=lambda: card)
+    assert not rig.paced_by_hardware
+    rig.activate()
+    rig.read()
+    assert card.task is None
+    rig.deactivate()
+
+
+def test_the_linear_rig_maps_the_piston_encoder_in_metres() -> None:
+    card = FakeHIL()
+    cfg = _wired().model_copy(update={"encoder": EncoderIn(channel=1, m_per_count=1e-5, zero_counts=100)})
+    rig = QuanserRig(cfg, SimClock(), 0.005, rig="linear", hil_class=lambda: card)
+    rig.activate()
+    card.encoder[1] = 100 + 12345  # 123.45 mm extended
+    assert rig.read().theta == pytest.approx(0.12345)
+    rig.deactivate()
+    with pytest.raises(ValueError, match="rotary, linear, cpr"):
+        QuanserRig(cfg, SimClock(), 0.005, rig="pendulum", hil_class=lambda: card)
 
 
 def test_without_the_vendor_api_the_quanser_backend_says_what_to_install() -> None:

@@ -291,6 +291,11 @@ class Engine:
         n = int(round(duration * self.rate_hz))
         t = self.clock.now()
         try:
+            if getattr(self.backend, "paced_by_hardware", False):
+                prev = math.nan
+                for _ in range(n):
+                    prev = self._hardware_tick(prev)
+                return
             for i in range(n):
                 self.clock.sleep_until(t + i * self.period)
                 self._timed_tick(t + i * self.period)
@@ -333,6 +338,27 @@ class Engine:
         if end > deadline + self.period:
             self.overruns += 1
 
+    def _hardware_tick(self, prev_sample: float) -> float:
+        """One period on a backend whose :meth:`read` waits for the device's clock.
+
+        The period is the device's, so jitter is how far the interval between
+        two samples' arrivals strays from it, and an overrun is a period whose
+        work outlasted the period (the next sample was already waiting).
+
+        Returns:
+            The arrival time of this period's sample [s].
+        """
+        self.tick()
+        end = self.clock.now()
+        meas = self.last_measurement
+        t_sample = meas.t if meas is not None else end
+        if math.isfinite(prev_sample):
+            self._jitter.append(abs(t_sample - prev_sample - self.period))
+        self._wall.append(end)
+        if end - t_sample > self.period:
+            self.overruns += 1
+        return t_sample
+
     def start(self) -> None:
         """Run paced in a background thread until :meth:`stop`."""
         if self._thread is not None and self._thread.is_alive():
@@ -372,6 +398,11 @@ class Engine:
             self.realtime = not self.realtime_note
         nxt = self.clock.now()
         try:
+            if getattr(self.backend, "paced_by_hardware", False):
+                prev = math.nan
+                while not self._stop.is_set():
+                    prev = self._hardware_tick(prev)
+                return
             while not self._stop.is_set():
                 self.clock.sleep_until(nxt)
                 self._timed_tick(nxt)

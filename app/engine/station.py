@@ -643,7 +643,8 @@ class Station:
                     raise ParameterError(f"what = encoder_zero: the handle moves ({w:.2f} rad/s); hold it still "
                                          "at neutral")
                 enc = cfg.encoder
-                shift = int(round(enc.sign * m * enc.counts_per_rev / (2.0 * np.pi)))
+                # the reading becomes zero: the neutral angle, or the linear piston's position now
+                shift = enc.position_to_counts(m, self.rig.kind) - enc.zero_counts
                 new = cfg.calibrated(what, encoder=enc.model_copy(update={"zero_counts": enc.zero_counts + shift}))
                 before, after = {"zero_counts": enc.zero_counts}, {"zero_counts": enc.zero_counts + shift}
             if self.hardware_path is not None:

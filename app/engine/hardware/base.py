@@ -80,6 +80,10 @@ class HardwareInterface(abc.ABC):
     rig: str = "rotary"
     responds_to_commands: bool = True
     """False where the measurements do not answer the commands (a replayed log)."""
+    paced_by_hardware: bool = False
+    """True where :meth:`read` blocks until the device's own clock takes the next
+    sample (a hardware-timed DAQ task): the engine then does not sleep, the
+    device sets the period."""
 
     @abc.abstractmethod
     def activate(self) -> None:

@@ -14,7 +14,9 @@ Conventions (SI inside, volts and counts at the edge):
 * torque [N·m] = ``gain`` × V + ``offset``; default 1 N·m/V (TS70a-10Nm with
   its ±10 V amplifier);
 * angle [rad] = ``sign`` × 2π × (counts − ``zero_counts``) / ``counts_per_rev``
-  (1024 lines × 4 = 4096);
+  (1024 lines × 4 = 4096) on the rotary rig; position [m] = ``sign`` ×
+  ``m_per_count`` × (counts − ``zero_counts``) on the linear and CPR rigs
+  (thesis 3.2.4's ESKON linear encoder: 0.01 mm);
 * speed: the backward difference of the angle through a first-order low-pass
   (``speed_filter_hz``), as the simulator's sensors and the thesis derive it.
 
@@ -76,20 +78,50 @@ class AnalogIn(_Strict):
         return (value - self.offset) / self.gain
 
 
+LINEAR_RIGS = ("linear", "cpr")
+"""Rigs whose encoder reads a piston position [m] (the CPR set-up is the linear cylinder held extended)."""
+RIGS = ("rotary", *LINEAR_RIGS)
+
+
+def check_rig(rig: str, backend: str) -> None:
+    """Refuse a rig kind no hardware mapping exists for.
+
+    Raises:
+        ValueError: Naming the kinds that are mapped.
+    """
+    if rig not in RIGS:
+        raise ValueError(f"the {backend} backend maps the rigs {', '.join(RIGS)}, not {rig!r}")
+
+
 class EncoderIn(_Strict):
     """The quadrature encoder.
 
     Attributes:
         channel: Encoder channel number.
-        counts_per_rev: Counts per revolution (lines × 4).
-        sign: +1 or −1 so that CCW (pronation) is positive.
-        zero_counts: Count at the neutral position; set by calibration.
+        counts_per_rev: Counts per revolution (lines × 4), rotary rig.
+        m_per_count: Metres per count, linear and CPR rigs (ESKON: 1e-5).
+        sign: +1 or −1 so that CCW (pronation) or extension is positive.
+        zero_counts: Count at the neutral position (rotary) or at the
+            retracted end (linear); set by calibration.
     """
 
     channel: Annotated[int, Field(ge=0, le=255)] = 0
     counts_per_rev: Annotated[int, Field(ge=4, le=1 << 24)] = 4096
+    m_per_count: Annotated[float, Field(gt=0.0, le=0.01)] = 1.0e-5
     sign: Literal[1, -1] = 1
     zero_counts: Annotated[int, Field(ge=-(1 << 31), le=(1 << 31) - 1)] = 0
+
+    def to_position(self, counts: int, rig: str = "rotary") -> float:
+        """Counts → angle [rad] (rotary) or piston position [m] (linear, CPR)."""
+        if rig in LINEAR_RIGS:
+            return self.sign * self.m_per_count * (counts - self.zero_counts)
+        return self.to_rad(counts)
+
+    def position_to_counts(self, position: float, rig: str = "rotary") -> int:
+        """Angle [rad] or position [m] → counts (what the encoder would read)."""
+        if rig in LINEAR_RIGS:
+            return int(round(self.sign * position / self.m_per_count)) + self.zero_counts
+        return self.to_counts(position)
 
     def to_rad(self, counts: int) -> float:
         """Counts → angle [rad] from neutral."""
@@ -221,11 +253,21 @@ class QuanserCard(_Strict):
         card_id: Board identifier (``"0"`` for the first).
         watchdog_s: HIL watchdog timeout [s]: if the station stops reloading
             it, the board itself sets the safe outputs.
+        timing: ``"task"`` (default): the board samples the inputs on its own
+            hardware clock at the loop rate (a HIL reader task) and the loop
+            runs once per sample, as QUARC's timebase blocks do;
+            ``"immediate"``: the engine paces immediate-mode reads on the
+            computer's clock.
+        task_buffer_s: How much of the reader task's samples the driver
+            buffers while the loop is late [s]; a late loop works the backlog
+            off sample by sample.
     """
 
     card_type: str = "q8_usb"
     card_id: str = "0"
     watchdog_s: Annotated[float, Field(gt=0.0, le=10.0)] = 0.1
+    timing: Literal["task", "immediate"] = "task"
+    task_buffer_s: Annotated[float, Field(gt=0.0, le=10.0)] = 0.1
 
 
 class ReplaySource(_Strict):

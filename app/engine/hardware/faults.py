@@ -78,6 +78,7 @@ class FaultyRig(HardwareInterface):
         self.faults = list(faults or [])
         self.name = f"{inner.name}+faults"
         self.rig = inner.rig
+        self.paced_by_hardware = inner.paced_by_hardware
         self._t = -math.inf
 
     def __getattr__(self, name: str) -> Any:  # set_program, set_disturbance, period … of the inner rig

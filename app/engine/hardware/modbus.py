@@ -26,7 +26,7 @@ import time
 from typing import Any
 
 from app.engine.hardware.base import Command, HardwareInterface, Measurement
-from app.engine.hardware.config import HardwareConfig, SpeedEstimator
+from app.engine.hardware.config import HardwareConfig, SpeedEstimator, check_rig
 
 FULL_SCALE = 32767
 """Counts at +10 V (signed 16-bit registers, ±10 V inputs; 0–10 V outputs)."""
@@ -68,14 +68,15 @@ class ModbusRig(HardwareInterface):
         config: Channel map, scaling and the link.
         clock: The engine's clock (sample times).
         period: Nominal sampling period [s] (speed estimator).
-        rig: ``"rotary"`` (angle in rad) — the linear rig over Modbus is not mapped yet.
+        rig: ``"rotary"`` (angle in rad), ``"linear"`` or ``"cpr"`` (piston
+            position in m; the torque input then carries whatever force
+            signal the linear rig wires to it, in its own scaling).
     """
 
     name = "modbus"
 
     def __init__(self, config: HardwareConfig, clock: Any, period: float, rig: str = "rotary") -> None:
-        if rig != "rotary":
-            raise ValueError(f"the Modbus backend maps the rotary rig only, not {rig!r}")
+        check_rig(rig, "Modbus")
         self.config = config
         self.link = config.link()
         self.clock = clock
@@ -143,7 +144,7 @@ class ModbusRig(HardwareInterface):
     # --------------------------------------------------------------- per period
 
     def read(self) -> Measurement:
-        """One request for the analog inputs and the encoder; scaled to bar abs, N·m, rad, rad/s."""
+        """One request for the analog inputs and the encoder; scaled to bar abs, N·m, rad (m), rad/s (m/s)."""
         ins, enc = self.config.inputs, self.config.encoder
         base = self.link.input_base + self._in_lo
         eaddr = self.link.encoder_base + 2 * enc.channel
@@ -157,7 +158,7 @@ class ModbusRig(HardwareInterface):
         def volts(ch: int) -> float:
             return counts_to_volts(regs[self.link.input_base + ch - lo])
 
-        theta = enc.to_rad(join32(regs[eaddr - lo], regs[eaddr - lo + 1]))
+        theta = enc.to_position(join32(regs[eaddr - lo], regs[eaddr - lo + 1]), self.rig)
         return Measurement(t_sample, ins.p_a.to_physical(volts(ins.p_a.channel)),
                            ins.p_b.to_physical(volts(ins.p_b.channel)), ins.p_s.to_physical(volts(ins.p_s.channel)),
                            theta, self.speed.update(theta), ins.torque.to_physical(volts(ins.torque.channel)))
@@ -212,7 +213,7 @@ class PlantServer:
                 link.input_base + ins.p_b.channel: volts_to_counts(ins.p_b.to_volts(m.p_b)),
                 link.input_base + ins.p_s.channel: volts_to_counts(ins.p_s.to_volts(m.p_s)),
                 link.input_base + ins.torque.channel: volts_to_counts(ins.torque.to_volts(m.torque))}
-        hi, lo = split32(enc.to_counts(m.theta))
+        hi, lo = split32(enc.position_to_counts(m.theta, getattr(self.rig, "rig", "rotary")))
         regs[link.encoder_base + 2 * enc.channel] = hi
         regs[link.encoder_base + 2 * enc.channel + 1] = lo
         return regs

@@ -12,13 +12,23 @@ Python examples):
 * ``write_analog(channels, num_channels, voltages)``;
 * ``watchdog_set_analog_expiration_state(channels, num_channels, voltages)``,
   ``watchdog_start(timeout)``, ``watchdog_reload()`` (False once expired),
-  ``watchdog_is_expired()``, ``watchdog_stop()``, ``watchdog_clear()``.
+  ``watchdog_is_expired()``, ``watchdog_stop()``, ``watchdog_clear()``;
+* hardware timing: ``task_create_reader(samples_in_buffer, analog_channels,
+  num_analog, encoder_channels, num_encoder, digital_channels, num_digital,
+  other_channels, num_other)`` → task, ``task_start(task, clock, frequency,
+  num_samples)`` with ``Clock.HARDWARE_CLOCK_0`` and ``HIL.INFINITE``,
+  ``task_set_buffer_overflow_mode(task, BufferOverflowMode.OVERWRITE_ON_OVERFLOW)``,
+  ``task_read(task, num_samples, analog_buffer, encoder_buffer,
+  digital_buffer, other_buffer)`` (blocks until the samples are taken),
+  ``task_stop(task)``, ``task_delete(task)``.
 
 Channel and buffer arguments are ``array.array`` of C ``uint32`` / ``double``
 / ``int32``, as in the vendor's examples. The board's watchdog holds the
 configured safe outputs if the station stops reloading it (a dead process, a
-hung loop); the engine paces the I/O (immediate mode), so the loop period is
-the engine's, not a hardware-timed task's.
+hung loop). By default (``timing: task``) the board's clock sets the loop
+period: a reader task samples the inputs at the loop rate and :meth:`read`
+blocks until the next sample, so the computer's sleep accuracy no longer
+matters; ``timing: immediate`` reads on the engine's clock instead.
 """
 
 from __future__ import annotations
@@ -27,7 +37,7 @@ import array
 from typing import Any
 
 from app.engine.hardware.base import Command, HardwareInterface, Measurement
-from app.engine.hardware.config import HardwareConfig, SpeedEstimator
+from app.engine.hardware.config import HardwareConfig, SpeedEstimator, check_rig
 
 MISSING = ("the Quanser backend needs the vendor's Python API (module quanser.hardware), which ships with QUARC or "
            "the Quanser SDK and is not on PyPI: install it from Quanser, or choose backend sim or modbus")
@@ -50,28 +60,47 @@ def load_hil() -> Any:
     return HIL
 
 
+def load_task_constants() -> tuple[Any, Any]:
+    """The vendor's ``Clock.HARDWARE_CLOCK_0`` (the board's first sampling clock) and
+    ``BufferOverflowMode.OVERWRITE_ON_OVERFLOW``."""
+    try:
+        from quanser.hardware import BufferOverflowMode, Clock  # type: ignore[import-not-found]
+    except ImportError:
+        raise RuntimeError(MISSING) from None
+    return Clock.HARDWARE_CLOCK_0, BufferOverflowMode.OVERWRITE_ON_OVERFLOW
+
+
 class QuanserRig(HardwareInterface):
-    """The rotary rig on a Quanser HIL board.
+    """A rig on a Quanser HIL board.
 
     Args:
         config: Channel map, scaling, the card and its watchdog.
         clock: The engine's clock (sample times).
         period: Nominal sampling period [s] (speed estimator).
-        rig: ``"rotary"`` only.
+        rig: ``"rotary"`` (angle in rad), ``"linear"`` or ``"cpr"`` (position in m).
         hil_class: The vendor's ``HIL`` class (looked up when omitted).
+        task_constants: The vendor's clock id and overwrite-on-overflow mode
+            for the reader task (looked up when omitted and the timing is
+            ``task``).
     """
 
     name = "quanser"
 
     def __init__(self, config: HardwareConfig, clock: Any, period: float, rig: str = "rotary",
-                 hil_class: Any = None) -> None:
-        if rig != "rotary":
-            raise ValueError(f"the Quanser backend maps the rotary rig only, not {rig!r}")
+                 hil_class: Any = None, task_constants: tuple[Any, Any] | None = None) -> None:
+        check_rig(rig, "Quanser")
         self.config = config
         self.clock = clock
         self.period = period
         self.rig = rig
         self._hil_class = hil_class or load_hil()
+        self.paced_by_hardware = config.card().timing == "task"
+        if self.paced_by_hardware and task_constants is None:
+            task_constants = load_task_constants()
+        consts: tuple[Any, Any] = task_constants or (None, None)
+        self._hw_clock: Any = consts[0]
+        self._overwrite: Any = consts[1]
+        self._task: Any = None
         self.card: Any = None
         self.speed = SpeedEstimator(config.speed_filter_hz, period)
         ins, outs = config.inputs, config.outputs
@@ -99,12 +128,24 @@ class QuanserRig(HardwareInterface):
         card.watchdog_start(self.config.card().watchdog_s)
         self.speed.reset()
         self.write(safe)
+        if self.paced_by_hardware:
+            buffered = max(2, int(round(self.config.card().task_buffer_s / self.period)))
+            self._task = card.task_create_reader(buffered, self._ai, len(self._ai), self._enc, len(self._enc),
+                                                 None, 0, None, 0)
+            # a loop held up (a first-call compile, a long pause) then reads the newest buffered
+            # samples instead of failing on the overflow; the watchdog bounds how late it may be
+            card.task_set_buffer_overflow_mode(self._task, self._overwrite)
+            card.task_start(self._task, self._hw_clock, 1.0 / self.period, getattr(self._hil_class, "INFINITE", -1))
 
     def deactivate(self) -> None:
         """Safe outputs, stop the watchdog, close the board."""
         if self.card is None:
             return
         try:
+            if self._task is not None:
+                self.card.task_stop(self._task)
+                self.card.task_delete(self._task)
+                self._task = None
             if not self.card.watchdog_is_expired():  # expired: the board already holds the safe outputs
                 self._write_raw(self.safe_command())
             self.card.watchdog_stop()
@@ -113,10 +154,15 @@ class QuanserRig(HardwareInterface):
             self.card = None
 
     def read(self) -> Measurement:
-        """One immediate sample of the four analog inputs and the encoder, scaled."""
-        self.card.read(self._ai, len(self._ai), self._enc, 1, None, 0, None, 0, self._volts, self._counts, None, None)
+        """The four analog inputs and the encoder, scaled: the reader task's next
+        sample (blocks until the board takes it), or one immediate sample."""
+        if self._task is not None:
+            self.card.task_read(self._task, 1, self._volts, self._counts, None, None)
+        else:
+            self.card.read(self._ai, len(self._ai), self._enc, 1, None, 0, None, 0, self._volts, self._counts,
+                           None, None)
         ins, v = self.config.inputs, self._volts
-        theta = self.config.encoder.to_rad(int(self._counts[0]))
+        theta = self.config.encoder.to_position(int(self._counts[0]), self.rig)
         return Measurement(self.clock.now(), ins.p_a.to_physical(v[0]), ins.p_b.to_physical(v[1]),
                            ins.p_s.to_physical(v[2]), theta, self.speed.update(theta), ins.torque.to_physical(v[3]))
 
