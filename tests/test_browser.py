@@ -249,3 +249,59 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
         text = Path(dl.value.path()).read_text()
         assert text.startswith("t,") and text.count("\n") > 100  # ≥ 0.5 s of the run at 200 Hz
         assert "token" not in page.url and not errors, errors
+
+
+def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str, str], browser: object,
+                                                              tmp_path: Path) -> None:
+    """Issue 6's logs from a rig, through the page: a lone .csv is refused before anything is sent, a
+    log in the wrong unit is refused with the reason, good pairs become runs and a diagnosis of them
+    starts."""
+    import json
+    import urllib.request
+
+    import numpy as np
+    from playwright.sync_api import Browser, expect
+
+    from app.engine.sim import LOG_COLUMNS, run_workout
+
+    assert isinstance(browser, Browser)
+    base, _viser = station
+    meta = {"rig": "rotary", "sample_rate_hz": 200.0, "p_atm_bar": 1.01325, "working_pressure_bar": 3.0,
+            "experiment": "workout", "human": True}
+
+    def write(name: str, data: np.ndarray) -> list[str]:
+        np.savetxt(tmp_path / f"{name}.csv", data, delimiter=",", header=",".join(LOG_COLUMNS), comments="")
+        (tmp_path / f"{name}.json").write_text(json.dumps(meta))
+        return [str(tmp_path / f"{name}.csv"), str(tmp_path / f"{name}.json")]
+
+    def imported() -> list[dict]:
+        with urllib.request.urlopen(base + "/api/runs?kind=imported", timeout=10) as r:
+            return list(json.loads(r.read()))
+
+    before = len(imported())
+    good = write("isotonic-1", run_workout(duration=1.0, seed=1).log) + \
+        write("isotonic-2", run_workout(duration=1.0, seed=2).log)
+    pa = run_workout(duration=1.0).log
+    pa[:, LOG_COLUMNS.index("p_a")] *= 1e5
+    bad = write("in-pascal", pa)
+    page = browser.new_page(viewport={"width": 1400, "height": 1000})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(base + "/static/diagnosis.html")
+    page.select_option("#src", "files")
+    expect(page.locator("#logfiles")).to_be_visible()
+    page.set_input_files("#logfiles", good[:1])
+    page.click("#go")
+    expect(page.locator("#msg")).to_contain_text("needs both isotonic-1.csv and isotonic-1.json")
+    page.set_input_files("#logfiles", bad)
+    page.click("#go")
+    expect(page.locator("#msg")).to_contain_text("in-pascal: ")
+    expect(page.locator("#msg")).to_contain_text("looks like Pa")
+    assert len(imported()) == before  # refused logs leave nothing
+    page.set_input_files("#logfiles", good)
+    page.click("#go")
+    expect(page.locator("#msg")).to_contain_text("running", timeout=30_000)
+    names = sorted(r["spec"]["name"] for r in imported()[: 2])
+    assert names == ["isotonic-1", "isotonic-2"]
+    page.screenshot(path=str(SHOTS / "diagnosis_upload.png"))
+    assert not errors, errors

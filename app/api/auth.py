@@ -127,18 +127,23 @@ class BodyLimit:
         app: The wrapped application.
         max_bytes: Largest accepted body [bytes].
         detail: The error message.
+        routes: Other limits for some paths: path → (largest body [bytes], message)
+            (a run-log upload is larger than any other request).
     """
 
-    def __init__(self, app: ASGIApp, max_bytes: int, detail: str) -> None:
+    def __init__(self, app: ASGIApp, max_bytes: int, detail: str,
+                 routes: dict[str, tuple[int, str]] | None = None) -> None:
         self.app, self.max_bytes, self.detail = app, max_bytes, detail
+        self.routes = routes or {}
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        max_bytes, detail = self.routes.get(scope["path"].rstrip("/"), (self.max_bytes, self.detail))
         declared = dict(scope["headers"]).get(b"content-length", b"")
-        if declared.isdigit() and int(declared) > self.max_bytes:
-            body = json.dumps({"detail": self.detail}).encode()
+        if declared.isdigit() and int(declared) > max_bytes:
+            body = json.dumps({"detail": detail}).encode()
             await send({"type": "http.response.start", "status": 413,
                         "headers": [(b"content-type", b"application/json"),
                                     (b"content-length", str(len(body)).encode())]})
@@ -151,8 +156,8 @@ class BodyLimit:
             msg = await receive()
             if msg["type"] == "http.request":
                 seen += len(msg.get("body", b""))
-                if seen > self.max_bytes:
-                    raise HTTPException(413, self.detail)
+                if seen > max_bytes:
+                    raise HTTPException(413, detail)
             return msg
 
         await self.app(scope, counted, send)

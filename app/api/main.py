@@ -65,13 +65,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(title="CWRR Lab Station", version="0.2.0", lifespan=lifespan,
                   description="Control station of the pneumatic wrist/forearm rehabilitation robot (CWRR).",
                   responses={400: {"description": "The body is not readable JSON"},
-                             413: {"description": "The body is larger than CWRR_MAX_BODY_BYTES"}},
+                             413: {"description": "The body is larger than CWRR_MAX_BODY_BYTES "
+                                                  "(CWRR_MAX_UPLOAD_BYTES for a run-log upload)"}},
                   )
     app.state.settings = settings
     too_large = (f"request body too large: the limit is {settings.max_body_bytes} bytes "
                  f"(CWRR_MAX_BODY_BYTES)")
 
-    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes, detail=too_large)
+    upload_too_large = (f"run log too large: the upload limit is {settings.max_upload_bytes} bytes "
+                        f"(CWRR_MAX_UPLOAD_BYTES); split the log into experiments")
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes, detail=too_large,
+                       routes={"/api/runs/import": (settings.max_upload_bytes, upload_too_large)})
 
     if settings.cors_origins:  # closed unless a lab names the pages that may call the API
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_credentials=False,
@@ -81,7 +85,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         headers = dict(exc.headers or {})
         if exc.status_code == 413:
-            return JSONResponse(status_code=413, content={"detail": too_large})
+            upload = request.url.path.rstrip("/") == "/api/runs/import"
+            return JSONResponse(status_code=413, content={"detail": upload_too_large if upload else too_large})
         if exc.status_code == 405:
             # Starlette names only the first matching route's methods; a path served by
             # several routes (GET and POST /api/params) must list them all

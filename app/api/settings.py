@@ -32,6 +32,8 @@ class Settings(BaseSettings):
         cors_origins: Browser origins allowed to call the API from other pages
             (none by default: the dashboard is served by this server).
         max_body_bytes: Largest request body [bytes]; larger ones get 413.
+        max_upload_bytes: Largest run-log upload (``POST /api/runs/import``)
+            [bytes]; 64 MiB holds ≈ 50 minutes of a 200 Hz log.
         watchdog_s: The engine watchdog's stall time [s] (see ``Engine``).
         hardware: Path of the YAML hardware configuration (backend, channels,
             scaling, calibration); empty: the embedded simulator.
@@ -53,6 +55,7 @@ class Settings(BaseSettings):
     therapist_token: SecretStr | None = None
     cors_origins: list[str] = []
     max_body_bytes: Annotated[int, Field(ge=1024, le=1 << 30)] = 1 << 20
+    max_upload_bytes: Annotated[int, Field(ge=1024, le=1 << 30)] = 64 << 20
     watchdog_s: Annotated[float, Field(gt=0.0, le=60.0)] = 1.0
     hardware: str = ""
 

@@ -1,18 +1,24 @@
-"""Stored runs: list, detail, time series, export (CSV, MATLAB .mat)."""
+"""Stored runs: list, detail, time series, export (CSV, Parquet, MATLAB .mat), and run logs imported from elsewhere."""
 
 from __future__ import annotations
 
 import io
+import json
+import os
+import shutil
+import tempfile
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, HTTPException, Query
+from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response
+from pydantic import BaseModel, Field
 
-from app.api.auth import AUTH_RESPONSES, READ
+from app.api.auth import ADMIN, AUTH_RESPONSES, READ
 from app.api.deps import IdPath, StoreDep
 from app.api.models import RunInfo, Series
+from app.engine.params import ParameterError
 
 router = APIRouter(prefix="/api/runs", tags=["runs"], dependencies=[READ], responses=AUTH_RESPONSES)
 NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"description": "No such run, or it has no time series"}}
@@ -108,3 +114,77 @@ def export(run_id: IdPath, store: StoreDep, fmt: Literal["csv", "parquet", "mat"
     savemat(buf, mdict, do_compression=True)
     return Response(buf.getvalue(), media_type="application/x-matlab-data",
                     headers={"Content-Disposition": f'attachment; filename="run-{run_id}.mat"'})
+
+
+class LogImport(BaseModel):
+    """A run log recorded elsewhere (another station, the rig's own DAQ, a script), in the station's format.
+
+    Attributes:
+        name: The log's name (its file stem; a diagnosis names held-out logs by it).
+        meta: The log's JSON metadata: at least ``rig``, ``sample_rate_hz``, ``p_atm_bar``,
+            ``working_pressure_bar``, ``experiment``, ``human``.
+        csv: The CSV text; the header exactly ``t,z_a,z_b,u_a,u_b,p_a,p_b,p_s,theta,omega,torque``
+            (s, V, bar abs, rad, rad/s, N·m).
+        notes: Free text stored with the run.
+    """
+
+    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")]
+    meta: dict[str, Any]
+    csv: Annotated[str, Field(min_length=1)]
+    notes: Annotated[str, Field(max_length=2000)] = ""
+
+
+def _parse_log(req: LogImport) -> np.ndarray:
+    """The checked (n, 11) array of an uploaded log, or a ParameterError naming the problem."""
+    from app.engine.diagnosis.logs import LogFormatError, check_frame
+
+    lines = req.csv.splitlines()
+    header = [h.strip() for h in lines[0].split(",")]
+    rows = [ln for ln in lines[1:] if ln.strip()]
+    try:
+        data = np.loadtxt(rows, delimiter=",", ndmin=2) if rows else np.zeros((0, len(header)))
+    except ValueError as exc:
+        raise ParameterError(f"csv: a row is not {len(header)} numbers ({exc})") from None
+    if data.size and data.shape[1] != len(header):
+        raise ParameterError(f"csv: rows have {data.shape[1]} values, the header {len(header)}")
+    try:
+        check_frame(req.name, header, data, req.meta)
+    except LogFormatError as exc:
+        field = "meta" if str(exc).startswith(f"{req.name}.json") else "csv"
+        raise ParameterError(f"{field}: {exc}") from None
+    return data
+
+
+@router.post("/import", response_model=RunInfo, status_code=201, dependencies=[ADMIN],
+             responses={413: {"description": "Larger than CWRR_MAX_UPLOAD_BYTES"}},
+             summary="Store a run log recorded elsewhere (checked first), e.g. to diagnose it")
+def import_log(req: LogImport, store: StoreDep, request: Request) -> RunInfo:
+    """The log is checked as ``cwrr diagnose`` checks a log directory (columns, units, NaN, time);
+    a refused log leaves nothing behind. Accepted, it is a run of kind ``imported`` whose series and
+    exports work like a recorded run's and whose id a diagnosis accepts in ``run_ids``."""
+    data = _parse_log(req)
+    root = Path(request.app.state.station.data_dir) / "imported"
+    root.mkdir(parents=True, exist_ok=True)
+    # written in a temporary folder and renamed into place before the run is stored: a run never
+    # points at a half-written log
+    tmp = Path(tempfile.mkdtemp(prefix=".upload-", dir=root))
+    try:
+        from app.engine.sim import LOG_COLUMNS
+
+        np.savetxt(tmp / f"{req.name}.csv", data, delimiter=",", header=",".join(LOG_COLUMNS), comments="",
+                   fmt="%.9g")
+        (tmp / f"{req.name}.json").write_text(json.dumps(req.meta, indent=1), encoding="utf-8")
+        for f in tmp.iterdir():
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+        final = root / tmp.name.removeprefix(".upload-")
+        tmp.rename(final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    spec = {"name": req.name, "meta": req.meta, "notes": req.notes, "rows": int(data.shape[0])}
+    run_id = store.run_started("imported", spec, str(final / f"{req.name}.csv"))
+    duration = float(data[-1, 0] - data[0, 0])
+    store.run_finished(run_id, "complete", None, {"rows": int(data.shape[0]), "duration_s": duration,
+                                                  "rig": req.meta["rig"], "experiment": req.meta["experiment"]})
+    return _info(_get(store, run_id))
