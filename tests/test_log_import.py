@@ -1,7 +1,7 @@
 """Run logs recorded elsewhere, uploaded through the API (issue 6's format, issue 7's upload limit).
 
 A researcher with logs from a rig (or another station) posts each ``NAME.csv`` + ``NAME.json`` pair
-to ``POST /api/runs/import``; the log is checked like ``cwrr diagnose`` checks a directory, stored as
+to ``POST /api/runs``; the log is checked like ``cwrr diagnose`` checks a directory, stored as
 a run, and can then be plotted, exported and diagnosed by run id.
 """
 
@@ -52,7 +52,7 @@ def _imported(client: TestClient) -> list[dict[str, Any]]:
 
 def test_an_uploaded_log_is_stored_as_a_run_with_its_series_and_exports(client: TestClient, tmp_path: Path) -> None:
     data = _log()
-    r = client.post("/api/runs/import", json={"name": "rig-isotonic-1", "meta": META, "csv": _csv(data),
+    r = client.post("/api/runs", json={"name": "rig-isotonic-1", "meta": META, "csv": _csv(data),
                                               "notes": "from the lab's own DAQ"})
     assert r.status_code == 201, r.text
     run = r.json()
@@ -97,7 +97,7 @@ def test_a_bad_log_is_refused_with_the_problem_and_leaves_nothing(client: TestCl
         change = {"csv": _csv(data)}
     elif csv == "RAGGED":
         change = {"csv": _csv(data) + "1,2,3\n"}
-    r = client.post("/api/runs/import", json=body | change)
+    r = client.post("/api/runs", json=body | change)
     assert r.status_code == 422, r.text
     d = r.json()["detail"][0]
     assert field in d["loc"] and words in d["msg"], d
@@ -112,8 +112,8 @@ def test_uploads_have_their_own_size_limit_and_other_requests_keep_theirs(tmp_pa
     size = len(json.dumps(body))
     assert size > 4096
     with TestClient(_app(tmp_path, max_body_bytes=4096, max_upload_bytes=size + 100)) as c:
-        assert c.post("/api/runs/import", json=body).status_code == 201  # above the general limit: fine here
-        r = c.post("/api/runs/import", json={"name": "too-long", "meta": META, "csv": _csv(_log(1.5))})
+        assert c.post("/api/runs", json=body).status_code == 201  # above the general limit: fine here
+        r = c.post("/api/runs", json={"name": "too-long", "meta": META, "csv": _csv(_log(1.5))})
         assert r.status_code == 413 and "CWRR_MAX_UPLOAD_BYTES" in r.json()["detail"]
         r = c.post("/api/params", json={"kind": "workout", "name": "x" * 5000, "values": {}})
         assert r.status_code == 413 and "CWRR_MAX_BODY_BYTES" in r.json()["detail"]
@@ -124,11 +124,11 @@ def test_an_import_needs_an_admin_token_where_tokens_are_set(tmp_path: Path) -> 
     admin, therapist = "a" * 24, "t" * 24
     with TestClient(_app(tmp_path, admin_token=admin, therapist_token=therapist)) as c:
         body = {"name": "x", "meta": META, "csv": _csv(_log(0.5))}
-        assert c.post("/api/runs/import", json=body).status_code == 401
+        assert c.post("/api/runs", json=body).status_code == 401
         h = {"Authorization": f"Bearer {therapist}"}
-        assert c.post("/api/runs/import", json=body, headers=h).status_code == 403
+        assert c.post("/api/runs", json=body, headers=h).status_code == 403
         h = {"Authorization": f"Bearer {admin}"}
-        assert c.post("/api/runs/import", json=body, headers=h).status_code == 201
+        assert c.post("/api/runs", json=body, headers=h).status_code == 201
 
 
 @pytest.mark.slow
@@ -145,7 +145,7 @@ def test_logs_from_elsewhere_uploaded_then_diagnosed_by_run_id(client: TestClien
     ids = []
     for csv in sorted(logs.glob("*.csv")):
         meta = json.loads(csv.with_suffix(".json").read_text())
-        r = client.post("/api/runs/import", json={"name": csv.stem, "meta": meta, "csv": csv.read_text()})
+        r = client.post("/api/runs", json={"name": csv.stem, "meta": meta, "csv": csv.read_text()})
         assert r.status_code == 201, r.text
         ids.append(r.json()["id"])
     r = client.post("/api/diagnoses", json={"run_ids": ids})

@@ -75,7 +75,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     upload_too_large = (f"run log too large: the upload limit is {settings.max_upload_bytes} bytes "
                         f"(CWRR_MAX_UPLOAD_BYTES); split the log into experiments")
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes, detail=too_large,
-                       routes={"/api/runs/import": (settings.max_upload_bytes, upload_too_large)})
+                       routes={"/api/runs": (settings.max_upload_bytes, upload_too_large)})
 
     if settings.cors_origins:  # closed unless a lab names the pages that may call the API
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_credentials=False,
@@ -85,7 +85,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         headers = dict(exc.headers or {})
         if exc.status_code == 413:
-            upload = request.url.path.rstrip("/") == "/api/runs/import"
+            upload = request.url.path.rstrip("/") == "/api/runs"
             return JSONResponse(status_code=413, content={"detail": upload_too_large if upload else too_large})
         if exc.status_code == 405:
             # Starlette names only the first matching route's methods; a path served by

@@ -32,7 +32,7 @@ class Settings(BaseSettings):
         cors_origins: Browser origins allowed to call the API from other pages
             (none by default: the dashboard is served by this server).
         max_body_bytes: Largest request body [bytes]; larger ones get 413.
-        max_upload_bytes: Largest run-log upload (``POST /api/runs/import``)
+        max_upload_bytes: Largest run-log upload (``POST /api/runs``)
             [bytes]; 64 MiB holds ≈ 50 minutes of a 200 Hz log.
         watchdog_s: The engine watchdog's stall time [s] (see ``Engine``).
         hardware: Path of the YAML hardware configuration (backend, channels,

@@ -155,7 +155,7 @@ def _parse_log(req: LogImport) -> np.ndarray:
     return data
 
 
-@router.post("/import", response_model=RunInfo, status_code=201, dependencies=[ADMIN],
+@router.post("", response_model=RunInfo, status_code=201, dependencies=[ADMIN],
              responses={413: {"description": "Larger than CWRR_MAX_UPLOAD_BYTES"}},
              summary="Store a run log recorded elsewhere (checked first), e.g. to diagnose it")
 def import_log(req: LogImport, store: StoreDep, request: Request) -> RunInfo:
