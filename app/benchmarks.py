@@ -284,6 +284,24 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
             out: dict[str, Any] = json.loads(r.read())
             return out
 
+    import gc
+
+    pauses: list[tuple[int, float]] = []  # (generation, seconds) of every collection in the current phase
+    gc_t0 = [0.0]
+
+    def on_gc(stage: str, info: dict[str, int]) -> None:
+        if stage == "start":
+            gc_t0[0] = time.perf_counter()
+        else:
+            pauses.append((info["generation"], time.perf_counter() - gc_t0[0]))
+
+    gc.callbacks.append(on_gc)
+
+    def gc_stats() -> dict[str, Any]:
+        full = [d for g, d in pauses if g == 2]
+        return {"gc_collections": len(pauses), "gc_full": len(full),
+                "gc_max_ms": max((d for _g, d in pauses), default=0.0) * 1e3}
+
     def phase() -> dict[str, Any]:
         st = call("GET", "/api/engine")
         fault_before = None
@@ -296,8 +314,10 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
         engine = app.state.station.engine
         before = engine.overruns
         engine.reset_window()
+        pauses.clear()
         time.sleep(seconds)
         h = call("GET", "/api/health")
+        gcs = gc_stats()
         if call("GET", "/api/engine")["state"] == "running":  # a fault (the watchdog, say) already ended it
             call("POST", "/api/engine/stop")
         st = call("GET", "/api/engine")
@@ -305,7 +325,7 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
         return {k: h[k] for k in ("jitter_p50_ms", "jitter_p99_ms", "jitter_max_ms", "measured_rate_hz",
                                   "realtime")} | {"overruns": h["overruns"] - before, "state_after": st["state"],
                                                   "fault": fault["message"] if fault else None,
-                                                  "fault_before": fault_before}
+                                                  "fault_before": fault_before} | gcs
 
     import os
 
@@ -343,6 +363,7 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
         drawn = int(proc.stdout.readline().strip() or 0)
         proc.wait(60)
     finally:
+        gc.callbacks.remove(on_gc)
         server.should_exit = True
         th.join(30)
         if policy is not None:
