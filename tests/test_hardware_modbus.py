@@ -321,3 +321,56 @@ def test_the_linear_rig_runs_its_identification_tests_through_modbus_as_on_the_s
     for a, b in zip(ref.dynamic, got.dynamic, strict=True):
         assert math.isfinite(a.v) and b.v == pytest.approx(a.v, rel=0.05), (a.v, b.v)
         assert b.ff == pytest.approx(a.ff, rel=0.05), (a.ff, b.ff)
+
+
+def test_a_watchdog_write_waits_for_the_request_under_way_instead_of_interleaving() -> None:
+    """The engine's watchdog thread writes the safe outputs while the loop thread may be inside a
+    request; the sync pymodbus client is not thread-safe, so the backend runs one request at a time."""
+    import threading
+
+    class Reply:
+        registers = [0] * 64
+
+        @staticmethod
+        def isError() -> bool:  # pymodbus spells it so
+            return False
+
+    class SlowClient:
+        def __init__(self) -> None:
+            self.busy = False
+            self.overlaps = 0
+            self.calls: list[str] = []
+
+        def _req(self, name: str) -> Reply:
+            if self.busy:
+                self.overlaps += 1
+            self.busy = True
+            self.calls.append(name)
+            if name == "read":
+                reading.set()
+            time.sleep(0.05 if name == "read" else 0.0)
+            self.busy = False
+            return Reply()
+
+        def read_input_registers(self, *a: Any, **k: Any) -> Reply:
+            return self._req("read")
+
+        def write_registers(self, *a: Any, **k: Any) -> Reply:
+            return self._req("write")
+
+        def close(self) -> None:
+            pass
+
+    reading = threading.Event()
+    rig = ModbusRig(_config(), WallClock(), 0.005)
+    client = SlowClient()
+    rig.client = client
+    reader = threading.Thread(target=rig.read)
+    reader.start()
+    assert reading.wait(10)  # the read is under way
+    rig.write(rig.safe_command())  # the watchdog's write
+    reader.join()
+    assert client.overlaps == 0 and client.calls == ["read", "write"]
+    rig.deactivate()
+    with pytest.raises(Exception, match="link is closed"):
+        rig.read()  # a closed link is a lost link, not an AttributeError

@@ -84,6 +84,10 @@ class ModbusRig(HardwareInterface):
         self.rig = rig
         self.speed = SpeedEstimator(config.speed_filter_hz, period)
         self.client: Any = None
+        # the engine's watchdog thread writes the safe outputs while the loop thread may be inside a
+        # request; pymodbus's sync client is not thread-safe, so one request at a time (a blocked
+        # request ends within the link's timeout, so the watchdog waits at most that long)
+        self._link_lock = threading.Lock()
         self.last_applied = config.safe_outputs.command()
         ins = config.inputs
         chans = [ins.p_a.channel, ins.p_b.channel, ins.p_s.channel, ins.torque.channel]
@@ -97,22 +101,27 @@ class ModbusRig(HardwareInterface):
     def _connect(self) -> None:
         from pymodbus.client import ModbusTcpClient
 
-        if self.client is not None:
-            self.client.close()
-        # retries=0: a period has no time for a retry; a failed request is a lost link
-        self.client = ModbusTcpClient(self.link.host, port=self.link.port, timeout=self.link.timeout_s, retries=0)
-        if not self.client.connect():
+        with self._link_lock:
+            if self.client is not None:
+                self.client.close()
+            # retries=0: a period has no time for a retry; a failed request is a lost link
+            self.client = ModbusTcpClient(self.link.host, port=self.link.port, timeout=self.link.timeout_s,
+                                          retries=0)
+            up = self.client.connect()
+        if not up:
             raise LinkLost(f"cannot reach the Modbus coupler at {self.link.host}:{self.link.port}")
 
-    def _call(self, what: str, fn: Any, *args: Any, **kw: Any) -> Any:
+    def _call(self, what: str, method: str, *args: Any, **kw: Any) -> Any:
+        """One request: the client's ``method`` with ``args``; any failure is a lost link."""
         from pymodbus.exceptions import ModbusException
 
-        if self.client is None:
-            raise LinkLost("the Modbus link is closed")
-        try:
-            r = fn(*args, device_id=self.link.device_id, **kw)
-        except (ModbusException, OSError) as exc:
-            raise LinkLost(f"Modbus {what} failed: {exc}") from None
+        with self._link_lock:
+            if self.client is None:
+                raise LinkLost("the Modbus link is closed")
+            try:
+                r = getattr(self.client, method)(*args, device_id=self.link.device_id, **kw)
+            except (ModbusException, OSError) as exc:
+                raise LinkLost(f"Modbus {what} failed: {exc}") from None
         if r.isError():
             raise LinkLost(f"Modbus {what}: the coupler answered {r}")
         return r
@@ -121,7 +130,7 @@ class ModbusRig(HardwareInterface):
         """Connect (again), arm the coupler's watchdog, write the safe outputs."""
         self._connect()
         if self.link.watchdog_register:
-            self._call("watchdog set-up", self.client.write_register, self.link.watchdog_register,
+            self._call("watchdog set-up", "write_register", self.link.watchdog_register,
                        self.link.watchdog_ms)
         self.speed.reset()
         self.write(self.safe_command())
@@ -133,9 +142,10 @@ class ModbusRig(HardwareInterface):
         except LinkLost:
             pass
         finally:
-            if self.client is not None:
-                self.client.close()
-                self.client = None
+            with self._link_lock:
+                if self.client is not None:
+                    self.client.close()
+                    self.client = None
 
     def safe_command(self) -> Command:
         """The configured safe outputs."""
@@ -151,7 +161,7 @@ class ModbusRig(HardwareInterface):
         lo = min(base, eaddr)
         hi = max(base + self._in_n, eaddr + 2)
         t_send = self.clock.now()
-        regs = self._call("read", self.client.read_input_registers, lo, count=hi - lo).registers
+        regs = self._call("read", "read_input_registers", lo, count=hi - lo).registers
         # the coupler sampled somewhere in the round trip: its middle is the best estimate
         t_sample = 0.5 * (t_send + self.clock.now())
 
@@ -171,7 +181,7 @@ class ModbusRig(HardwareInterface):
         for out, v in ((outs.z_a, applied.z_a), (outs.z_b, applied.z_b), (outs.u_a, applied.u_a),
                        (outs.u_b, applied.u_b)):
             regs[out.channel - self._out_lo] = volts_to_counts(v)
-        self._call("write", self.client.write_registers, self.link.output_base + self._out_lo, regs)
+        self._call("write", "write_registers", self.link.output_base + self._out_lo, regs)
         self.last_applied = applied
         return applied
 

@@ -34,6 +34,7 @@ matters; ``timing: immediate`` reads on the engine's clock instead.
 from __future__ import annotations
 
 import array
+import threading
 from typing import Any
 
 from app.engine.hardware.base import Command, HardwareInterface, Measurement
@@ -102,6 +103,11 @@ class QuanserRig(HardwareInterface):
         self._overwrite: Any = consts[1]
         self._task: Any = None
         self.card: Any = None
+        # the engine's watchdog thread may write the safe outputs while the loop thread waits in a read:
+        # one call on the board at a time, and the watchdog gives up after a while (the board's own
+        # watchdog holds the safe outputs if the link is truly hung)
+        self._board_lock = threading.Lock()
+        self._lock_wait_s = max(4.0 * period, config.card().watchdog_s)
         self.speed = SpeedEstimator(config.speed_filter_hz, period)
         ins, outs = config.inputs, config.outputs
         self._ai = array.array("I", [ins.p_a.channel, ins.p_b.channel, ins.p_s.channel, ins.torque.channel])
@@ -156,11 +162,12 @@ class QuanserRig(HardwareInterface):
     def read(self) -> Measurement:
         """The four analog inputs and the encoder, scaled: the reader task's next
         sample (blocks until the board takes it), or one immediate sample."""
-        if self._task is not None:
-            self.card.task_read(self._task, 1, self._volts, self._counts, None, None)
-        else:
-            self.card.read(self._ai, len(self._ai), self._enc, 1, None, 0, None, 0, self._volts, self._counts,
-                           None, None)
+        with self._board_lock:
+            if self._task is not None:
+                self.card.task_read(self._task, 1, self._volts, self._counts, None, None)
+            else:
+                self.card.read(self._ai, len(self._ai), self._enc, 1, None, 0, None, 0, self._volts, self._counts,
+                               None, None)
         ins, v = self.config.inputs, self._volts
         theta = self.config.encoder.to_position(int(self._counts[0]), self.rig)
         return Measurement(self.clock.now(), ins.p_a.to_physical(v[0]), ins.p_b.to_physical(v[1]),
@@ -176,9 +183,15 @@ class QuanserRig(HardwareInterface):
         Raises:
             WatchdogExpired: The board already holds the safe outputs (the loop was too late).
         """
-        if not self.card.watchdog_reload():
-            raise WatchdogExpired("the HIL board's watchdog expired; it holds the safe outputs")
-        applied = self.config.outputs.apply(command)
-        self._write_raw(applied)
+        if not self._board_lock.acquire(timeout=self._lock_wait_s):
+            raise TimeoutError(f"the HIL board did not answer within {self._lock_wait_s * 1e3:.0f} ms; "
+                               "its watchdog holds the safe outputs")
+        try:
+            if not self.card.watchdog_reload():
+                raise WatchdogExpired("the HIL board's watchdog expired; it holds the safe outputs")
+            applied = self.config.outputs.apply(command)
+            self._write_raw(applied)
+        finally:
+            self._board_lock.release()
         self.last_applied = applied
         return applied
