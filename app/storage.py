@@ -117,9 +117,16 @@ class Store:
                 raise ValueError(f"cannot reach the database at {_redact(url)}: {str(exc).strip()}") from None
             ddl = _TABLES.format(**_POSTGRES)
             with self._lock:
-                for stmt in filter(str.strip, ddl.split(";")):
-                    self._db.execute(stmt)
-                self._db.execute("ALTER TABLE runs ADD COLUMN IF NOT EXISTS session_id BIGINT")
+                # two stations (or a station and a test) starting at once on one database: PostgreSQL's
+                # CREATE TABLE IF NOT EXISTS is not safe against a concurrent one (a unique violation on
+                # pg_type), so the schema is made under a session advisory lock
+                self._db.execute("SELECT pg_advisory_lock(hashtext('cwrr-store-schema'))")
+                try:
+                    for stmt in filter(str.strip, ddl.split(";")):
+                        self._db.execute(stmt)
+                    self._db.execute("ALTER TABLE runs ADD COLUMN IF NOT EXISTS session_id BIGINT")
+                finally:
+                    self._db.execute("SELECT pg_advisory_unlock(hashtext('cwrr-store-schema'))")
         else:
             path = sqlite_path(url)
             path.parent.mkdir(parents=True, exist_ok=True)

@@ -304,4 +304,17 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     names = sorted(r["spec"]["name"] for r in imported()[: 2])
     assert names == ["isotonic-1", "isotonic-2"]
     page.screenshot(path=str(SHOTS / "diagnosis_upload.png"))
+    # the station's run history lists them beside the finished diagnosis (whose metrics are not a workout's)
+    deadline = time.monotonic() + 120
+    while True:
+        with urllib.request.urlopen(base + "/api/runs?kind=diagnosis&limit=1", timeout=10) as r:
+            diag = json.loads(r.read())[0]
+        if diag["status"] != "running":
+            break
+        assert time.monotonic() < deadline, "the diagnosis did not finish"
+        time.sleep(0.5)
+    assert diag["status"] == "complete" and diag["metrics"], diag
+    page.goto(base)
+    expect(page.locator("#runs tbody")).to_contain_text("Imported log isotonic-2")
+    expect(page.locator("#runs tbody")).to_contain_text("Gap diagnosis")
     assert not errors, errors

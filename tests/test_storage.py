@@ -24,12 +24,20 @@ def url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
         return
     if not PG_URL:
         pytest.skip("no PostgreSQL server (CWRR_TEST_DATABASE_URL unset; ./dev test starts one where it can)")
+    import uuid
+
     import psycopg
 
-    with psycopg.connect(PG_URL, autocommit=True) as db:  # a clean database for each test
-        for table in ("runs", "param_sets", "sessions"):
-            db.execute(f"DROP TABLE IF EXISTS {table}")
-    yield PG_URL
+    # a schema of its own for each test: parallel workers share the server, not the tables
+    schema = f"t_{uuid.uuid4().hex[:12]}"
+    with psycopg.connect(PG_URL, autocommit=True) as db:
+        db.execute(f"CREATE SCHEMA {schema}")
+    sep = "&" if "?" in PG_URL else "?"
+    try:
+        yield f"{PG_URL}{sep}options=-csearch_path%3D{schema}"
+    finally:
+        with psycopg.connect(PG_URL, autocommit=True) as db:
+            db.execute(f"DROP SCHEMA {schema} CASCADE")
 
 
 def test_runs_sessions_and_parameter_sets_round_trip(url: str) -> None:
@@ -81,3 +89,31 @@ def test_a_store_made_before_sessions_gains_the_column(tmp_path: Path) -> None:
     db.close()
     s = Store(f"sqlite:///{path}")
     assert s.run(1)["session_id"] is None  # type: ignore[index]
+
+
+def test_stores_opened_at_once_on_one_database_all_come_up(url: str) -> None:
+    """Two stations (or a station and a script) starting together: making the schema is serialised
+    (PostgreSQL's CREATE TABLE IF NOT EXISTS alone races with itself)."""
+    import threading
+
+    errors: list[BaseException] = []
+    stores: list[Store] = []
+    gate = threading.Barrier(6)
+
+    def open_one() -> None:
+        try:
+            gate.wait(10)
+            stores.append(Store(url))
+        except BaseException as exc:  # collected for the assertion below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=open_one) for _ in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert not errors, errors
+    rid = stores[0].run_started("workout", {}, "")
+    assert all(s.run(rid) is not None for s in stores)
+    for s in stores:
+        s.close()
