@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar, Generic, Literal, Protocol, TypeVar
 
 import numpy as np
+from numba import njit
 from scipy import optimize, stats
 
 Direction = Literal["positive", "negative"]
@@ -340,6 +341,68 @@ def breakaway_level(f: np.ndarray, pos: np.ndarray, rest_tol: float) -> float:
         return float(np.max(f))
     i = int(moved[0])
     return 0.5 * (float(f[i - 1]) + float(f[i]))
+
+
+@njit(cache=True, error_model="numpy")
+def onset_level(f: np.ndarray, x: np.ndarray, i: int, dt: float, fc: float, vs: float, b: float, m: float,
+                fs_lo: float, fs_hi: float) -> float:
+    """Breakaway level of one static test from the motion that followed it [N].
+
+    The PRV raises the force in steps that can be half of a small cylinder's
+    F_s, within one sample, and the first encoder count comes one or two
+    samples after the breakaway: the samples bracketing that count do not
+    bracket the crossing. After the crossing the piston obeys
+    M·ẍ = F − F_f(ẋ), F_f the Stribeck curve with level F_s, so how far it
+    got by each later sample says where in the step F_s lay. A grid over
+    F_s × breakaway instant (inside the last three sample intervals before
+    the count) is integrated with the force held per interval and the best
+    match of the measured positions wins.
+
+    Args:
+        f: Pneumatic force at the samples, sign-normalised to positive [N].
+        x: Position from rest at the samples, in the direction of motion [m].
+        i: Index of the first sample that moved (≥ 1).
+        dt: Sample period [s].
+        fc: Coulomb level [N] (the dynamic fit's).
+        vs: Stribeck speed [m/s] (the dynamic fit's).
+        b: Viscous coefficient [N·s/m].
+        m: Moving mass [kg].
+        fs_lo: Lowest F_s considered [N].
+        fs_hi: Highest F_s considered [N].
+
+    Returns:
+        The best-matching F_s [N] (NaN when nothing could be matched).
+    """
+    n_fs, n_frac, n_sub = 400, 8, 25
+    best_sse = np.inf
+    best = np.nan
+    n = f.shape[0]
+    for tb_k in range(max(1, i - 2), i + 1):
+        for q in range(n_frac):
+            t0 = (tb_k - 1 + 0.95 * q / (n_frac - 1)) * dt
+            for g in range(n_fs):
+                fs = fs_lo + (fs_hi - fs_lo) * g / (n_fs - 1)
+                v = 0.0
+                xx = 0.0
+                sse = 0.0
+                for k in range(tb_k, n):
+                    t_start = max((k - 1) * dt, t0)
+                    h = (k * dt - t_start) / n_sub
+                    force = f[k]
+                    for _ in range(n_sub):
+                        if v <= 0.0 and force < fs:
+                            a = 0.0  # static friction holds
+                        else:
+                            s = v / vs
+                            a = (force - (fc + (fs - fc) * math.exp(-s * s) + b * v)) / m
+                        v = max(v + a * h, 0.0)
+                        xx += v * h
+                    if k >= i - 1:
+                        sse += (xx - x[k]) ** 2
+                if sse < best_sse:
+                    best_sse = sse
+                    best = fs
+    return best
 
 
 def curve_r2(data: Any, fits: tuple[tuple[str, FrictionFit], ...]) -> float:

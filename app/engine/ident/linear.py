@@ -34,7 +34,15 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from app.engine.hardware.base import Command
-from app.engine.ident.fitting import FrictionData, FrictionFit, breakaway_level, curve_r2, fit_friction
+from app.engine.ident.fitting import (
+    Direction,
+    FrictionData,
+    FrictionFit,
+    breakaway_level,
+    curve_r2,
+    fit_friction,
+    onset_level,
+)
 from app.engine.ident.gui_rules import LinearInputs
 from app.engine.ident.procedure import Procedure, Script
 
@@ -51,7 +59,12 @@ SG_WINDOW = 7  # Savitzky–Golay window [samples] for speed and acceleration of
 @dataclass
 class LinearStaticTest:
     """One static experiment: signed F_s [N] at the onset of motion (NaN if the
-    piston never moved) and the thesis's statistic, the ramp's largest force."""
+    piston never moved) and the thesis's statistic, the ramp's largest force.
+
+    ``onset_*`` keep the samples around the first encoder count (force
+    sign-normalised, position from rest in the direction of motion, the
+    index of the first moved sample, the period) for the estimator's
+    motion-based level ``fs_onset``."""
 
     direction: str
     k: int
@@ -61,6 +74,11 @@ class LinearStaticTest:
     z_breakaway: float
     t_start: float
     t_end: float
+    onset_f: list[float] = field(default_factory=list)
+    onset_x: list[float] = field(default_factory=list)
+    onset_i: int = 0
+    onset_dt: float = 0.0
+    fs_onset: float = math.nan
 
 
 @dataclass
@@ -175,8 +193,16 @@ class LinearFrictionProcedure(Procedure):
                 moved = True
                 break
         level = breakaway_level(np.asarray(fs), np.asarray(xs), REST_TOL_M) if moved else math.nan
-        self.data.static.append(LinearStaticTest(direction, self.progress.k, x_t, sgn * level,
-                                                 sgn * best if moved else math.nan, z, t0, self.meas.t))
+        rec = LinearStaticTest(direction, self.progress.k, x_t, sgn * level, sgn * best if moved else math.nan, z,
+                               t0, self.meas.t)
+        first = np.nonzero(np.abs(np.asarray(xs) - xs[0]) > REST_TOL_M)[0] if moved else np.zeros(0, dtype=int)
+        if first.size and first[0] >= 1:
+            j0 = max(0, int(first[0]) - 4)
+            rec.onset_f = fs[j0:]
+            rec.onset_x = [sgn * (v - xs[0]) for v in xs[j0:]]
+            rec.onset_i = int(first[0]) - j0
+            rec.onset_dt = self.dt
+        self.data.static.append(rec)
         yield from self.hold(self.VENT, self.settle_s)
 
     def dynamic_test(self, direction: str) -> Script:
@@ -231,11 +257,15 @@ class LinearFrictionResult:
         retraction: Retraction fit (F_s, F_c, v_s negative; B positive).
         moving_mass_kg: Fitted moving mass used for the inertia correction [kg]
             (0 when the correction is off).
+        static_method: How F_s was read per direction: ``"onset"`` (from the
+            motion after breakaway) or ``"bracket"`` (the samples around the
+            first encoder count).
     """
 
     extension: FrictionFit
     retraction: FrictionFit
     moving_mass_kg: float = 0.0
+    static_method: tuple[str, str] = ("bracket", "bracket")
 
     def contract(self) -> dict[str, dict[str, Any]]:
         """The ``cwrr identify linear --json`` contract."""
@@ -271,16 +301,48 @@ class LinearFrictionEstimator:
         """
         self.mass_ = self._fit_mass(data) if self.inertia_correction else 0.0
         out = []
+        methods = []
         for d, sign in (("extension", 1.0), ("retraction", -1.0)):
             st, v, f = data.arrays(d)
             if self.mass_:
                 acc = np.array([t.acc for t in data.dynamic if t.direction == d], dtype=np.float64)
                 f = f - self.mass_ * acc
             x0 = (5.0 * sign, 0.1 * sign, 100.0)
-            out.append(fit_friction(st, v, f, "positive" if sign > 0 else "negative", x0, 0.1, 100.0,
-                                    self.with_ci))
-        self.params_ = LinearFrictionResult(out[0], out[1], self.mass_)
+            direction: Direction = "positive" if sign > 0 else "negative"
+            fit = fit_friction(st, v, f, direction, x0, 0.1, 100.0, self.with_ci)
+            method = "bracket"
+            onset = self._onset_levels(data, d, fit)
+            if onset is not None:
+                fit = fit_friction(sign * onset, v, f, direction, x0, 0.1, 100.0, self.with_ci)
+                method = "onset"
+            out.append(fit)
+            methods.append(method)
+        self.params_ = LinearFrictionResult(out[0], out[1], self.mass_, (methods[0], methods[1]))
         return self
+
+    def _onset_levels(self, data: LinearFrictionData, direction: str, fit: FrictionFit) -> np.ndarray | None:
+        """Each static test's level from the motion after breakaway (:func:`onset_level`), or None.
+
+        It needs the low-speed friction: only when the dynamic runs reached the
+        Stribeck region (the slowest within 2·v_s) and the moving mass is known.
+        Otherwise the bracket levels stand (on a valve too fast for slow runs
+        v_s is not identified, and a wrong v_s biases the motion model).
+        """
+        if not self.mass_ or not math.isfinite(fit.vs) or fit.speed_range[0] > 2.0 * abs(fit.vs):
+            return None
+        tests = [t for t in data.static if t.direction == direction and t.onset_f]
+        if len(tests) < 2:
+            return None
+        fc, vs, b = abs(fit.fc), abs(fit.vs), fit.b
+        out = []
+        for t in tests:
+            f = np.asarray(t.onset_f, dtype=np.float64)
+            x = np.asarray(t.onset_x, dtype=np.float64)
+            hi = float(f[: t.onset_i + 1].max())  # it broke away by the first count: F_s is below the force seen
+            t.fs_onset = math.copysign(onset_level(f, x, t.onset_i, t.onset_dt, fc, vs, b, self.mass_, fc, hi),
+                                       t.fs)
+            out.append(abs(t.fs_onset))
+        return np.asarray(out)
 
     @staticmethod
     def _fit_mass(data: LinearFrictionData) -> float:
