@@ -1,10 +1,14 @@
 """Issues 5 and 7: the engine keeps its 200 Hz period while 10 browsers watch and a script polls the API.
 
-Runs :func:`app.benchmarks.load` (the same as ``python bench/load.py 10 --rps 50``):
-one SC-1 workout with no client (the peer), one with five dashboards and five
-viser pages open in Debian's Chromium and 50 REST requests per second from
-another process, jitter and overruns read from ``/api/health`` over the same
-8 s of each.
+Runs :func:`app.benchmarks.load` (as ``python bench/load.py 10 --rps 50 --viser 2``):
+one SC-1 workout with no client (the peer), one with eight dashboards and two
+viser pages open in Debian's Chromium — ten pages drawing live plots — and 50
+REST requests per second from another process, jitter and overruns read from
+``/api/health`` over the same 8 s of each. Two viser pages, not the
+benchmark's five: each renders its 3-D scene in software GL and loads in
+seconds to minutes on a busy 2-core machine (this test took 2.5–10 minutes
+with five), which the 15-minute CI budget cannot carry; the benchmark keeps
+the heavier mix.
 
 The timing goals (measured rate within 1 % of 200 Hz, p99 start jitter under
 1 ms, no overruns) are the benchmark's to print beside its no-client peer, not
@@ -30,9 +34,9 @@ def test_the_engine_keeps_its_period_while_ten_browsers_watch_and_a_script_polls
     from app.benchmarks import load
     from app.engine.loop import make_realtime
 
-    r = load(10, rps=50.0)
+    r = load(10, rps=50.0, viser_clients=2)
     print(json.dumps(r, indent=1))
-    assert r["dashboards_drawing"] == 5  # the dashboards really drew live data
+    assert r["dashboards_drawing"] == 8  # the dashboards really drew live data
     req = r["requests"]
     assert req["errors"] == 0 and req["requests"] > 0.5 * 50 * 8, req  # a scripted client was served throughout
     for phase in ("quiet", "watched"):
