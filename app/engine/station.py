@@ -444,6 +444,11 @@ class Station:
             backend.activate()  # a real backend cannot be read before its link is open
             warm = InteractionController()
             warm.step(backend.read(), 1.0 / self.rate_hz)
+            if rig.kind == "linear":
+                # the linear friction fit's onset model is compiled code too; it runs beside the loop
+                from app.engine.ident.fitting import onset_level
+
+                onset_level(np.ones(3), np.zeros(3), 1, 0.005, 0.5, 0.05, 1.0, 1.0, 0.5, 1.0)
             self.backend = backend
             self.live.clear()
             self._start_engine(self.rate_hz)
