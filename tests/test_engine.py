@@ -128,6 +128,21 @@ def test_runlog_is_durable_before_close(tmp_path) -> None:
     assert json.loads((tmp_path / "live.json").read_text())["status"] == "interrupted"
 
 
+def test_a_log_written_late_in_a_long_session_keeps_every_sample_time_apart(tmp_path) -> None:
+    """The station's clock counts from connect: after a morning of therapy a 500 Hz run's times
+    are ~10⁴ s, where six significant digits would round neighbouring samples together (and the
+    diagnosis would refuse the log for time not increasing)."""
+    from app.engine.diagnosis.logs import read_log
+
+    w = RunLogWriter(tmp_path, "late", META | {"sample_rate_hz": 500.0}, flush_every_s=0.0)
+    t0 = 14_400.0 + 1.0 / 3.0
+    w.append_many(np.array([[t0 + i * 0.002, 1.0, 1.0, 0.0, 10.0, 3.0, 3.0, 8.0, 0.1, 0.0, 0.5]
+                            for i in range(50)]))
+    w.close()
+    exp = read_log(tmp_path / "late.csv")  # checks that time increases and matches the rate
+    np.testing.assert_allclose(np.diff(exp.t), 0.002, atol=2e-6)
+
+
 @pytest.mark.parametrize("rate_hz", [200.0, 500.0])  # HIL control; rotary friction identification
 def test_paced_engine_thread_reports_timing(rate_hz: float) -> None:
     from app.engine.loop import WallClock

@@ -87,9 +87,16 @@ class RunLogWriter:
         while not self._done.wait(self.flush_every_s):
             self.flush()
 
+    @staticmethod
+    def _line(row: Iterable[float]) -> str:
+        # t to the microsecond at any age of the station's clock (six significant digits would
+        # merge 200 Hz samples once it passes 1000 s); the channels to six significant digits
+        it = iter(row)
+        return ",".join([f"{next(it):.6f}", *(f"{v:.6g}" for v in it)])
+
     def append(self, row: Iterable[float]) -> None:
         """Add one row in :data:`LOG_COLUMNS` order."""
-        line = ",".join(f"{v:.6g}" for v in row)
+        line = self._line(row)
         with self._buf_lock:
             self._buf.append(line)
             self.rows += 1
@@ -98,7 +105,7 @@ class RunLogWriter:
 
     def append_many(self, rows: Any) -> None:
         """Add many rows (an (n, 11) array) at once, then flush."""
-        lines = [",".join(f"{v:.6g}" for v in r) for r in rows]
+        lines = [self._line(r) for r in rows]
         with self._buf_lock:
             self._buf.extend(lines)
             self.rows += len(lines)
