@@ -84,9 +84,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         headers = dict(exc.headers or {})
-        if exc.status_code == 413:
-            upload = request.url.path.rstrip("/") == "/api/runs"
-            return JSONResponse(status_code=413, content={"detail": upload_too_large if upload else too_large})
+        if exc.status_code == 413:  # BodyLimit raised it with the limit of the route
+            return JSONResponse(status_code=413, content={"detail": exc.detail})
         if exc.status_code == 405:
             # Starlette names only the first matching route's methods; a path served by
             # several routes (GET and POST /api/params) must list them all

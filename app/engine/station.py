@@ -35,7 +35,7 @@ from app.engine import paramsets
 from app.engine.constants import BAR, P_ATM
 from app.engine.control.config import ControllerConfig, ControllerName
 from app.engine.control.interaction import InteractionController
-from app.engine.hardware.base import SAFE_COMMAND, Command, HardwareInterface, Measurement
+from app.engine.hardware.base import RIG_KINDS, SAFE_COMMAND, Command, HardwareInterface, Measurement
 from app.engine.hardware.config import HardwareConfig, save_config
 from app.engine.hardware.factory import make_factory
 from app.engine.loop import Controller, Engine, WallClock
@@ -100,7 +100,6 @@ LINEAR_IDENT_RATE_HZ = 200.0
 """Linear friction identification rate [Hz] (thesis 4.2.2)."""
 
 
-RIG_KINDS = ("rotary", "linear", "cpr")
 
 
 @dataclass(frozen=True)
@@ -446,9 +445,9 @@ class Station:
             warm.step(backend.read(), 1.0 / self.rate_hz)
             if rig.kind == "linear":
                 # the linear friction fit's onset model is compiled code too; it runs beside the loop
-                from app.engine.ident.fitting import onset_level
+                from app.engine.ident.fitting import compile_onset_model
 
-                onset_level(np.ones(3), np.zeros(3), 1, 0.005, 0.5, 0.05, 1.0, 1.0, 0.5, 1.0)
+                compile_onset_model()
             self.backend = backend
             self.live.clear()
             self._start_engine(self.rate_hz)

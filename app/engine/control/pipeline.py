@@ -54,7 +54,7 @@ from numba import njit
 
 from app.engine.constants import BAR, P_ATM
 from app.engine.control.fuzzy import fuzzy_gains
-from app.engine.physics.plant import stribeck_params
+from app.engine.physics.plant import stribeck_decay, stribeck_params
 from app.engine.physics.sensors import M_PA, M_PB, M_TQ, M_VEL
 
 # ------------------------------------------------------------------ parameters
@@ -228,7 +228,7 @@ def friction_estimate(mode: int, omega: float, pa: float, pb: float, fr: np.ndar
     p = pa if ccw else pb
     ts, tc, ws, b = stribeck_params(p, ccw, fr)
     w = omega if ccw else -omega
-    return tc + (ts - tc) * math.exp(-((abs(w) / ws) ** j)) + b * w
+    return tc + (ts - tc) * stribeck_decay(abs(w) / ws, j) + b * w
 
 
 @njit(cache=True, error_model="numpy")

@@ -147,7 +147,7 @@ def friction_torque(w: np.ndarray, stuck: np.ndarray, need: np.ndarray, p_lu: np
             continue
         direction = wi > 0.0 or (wi == 0.0 and need[i] > 0.0)
         ts, tc, ws, b = pl.stribeck_params(p_lu[i], direction, fr)
-        g = tc + (ts - tc) * math.exp(-((abs(wi) / ws) ** fr_j))
+        g = tc + (ts - tc) * pl.stribeck_decay(abs(wi) / ws, fr_j)
         if lugre:
             # after breakaway the bristles carry the friction up to the sliding level
             # over a displacement of ≈ g/σ0 instead of at once

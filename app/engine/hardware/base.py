@@ -73,6 +73,10 @@ SAFE_COMMAND = Command(0.0, 0.0, 0.0, 10.0)
 """Both PRVs vent, both DCVs route PRV ↔ chamber: equal, falling pressures."""
 
 
+RIG_KINDS = ("rotary", "linear", "cpr")
+"""The rigs the station drives (the CPR set-up is the linear cylinder held extended)."""
+
+
 class HardwareInterface(abc.ABC):
     """A rig the engine can drive: the simulator, a DAQ card, a fieldbus."""
 

@@ -40,7 +40,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from app.engine.hardware.base import SAFE_COMMAND, Command
+from app.engine.hardware.base import RIG_KINDS, SAFE_COMMAND, Command
 from app.engine.params import ParameterError, validation_reasons
 
 Volt = Annotated[float, Field(ge=-10.0, le=10.0, description="V")]
@@ -79,8 +79,7 @@ class AnalogIn(_Strict):
 
 
 LINEAR_RIGS = ("linear", "cpr")
-"""Rigs whose encoder reads a piston position [m] (the CPR set-up is the linear cylinder held extended)."""
-RIGS = ("rotary", *LINEAR_RIGS)
+"""Rigs whose encoder reads a piston position [m]."""
 
 
 def check_rig(rig: str, backend: str) -> None:
@@ -89,8 +88,8 @@ def check_rig(rig: str, backend: str) -> None:
     Raises:
         ValueError: Naming the kinds that are mapped.
     """
-    if rig not in RIGS:
-        raise ValueError(f"the {backend} backend maps the rigs {', '.join(RIGS)}, not {rig!r}")
+    if rig not in RIG_KINDS:
+        raise ValueError(f"the {backend} backend maps the rigs {', '.join(RIG_KINDS)}, not {rig!r}")
 
 
 class EncoderIn(_Strict):

@@ -405,6 +405,11 @@ def onset_level(f: np.ndarray, x: np.ndarray, i: int, dt: float, fc: float, vs: 
     return best
 
 
+def compile_onset_model() -> None:
+    """Compile (or load from the cache) :func:`onset_level` now, not in the first fit."""
+    onset_level(np.ones(3), np.zeros(3), 1, 0.005, 0.5, 0.05, 1.0, 1.0, 0.5, 1.0)
+
+
 def curve_r2(data: Any, fits: tuple[tuple[str, FrictionFit], ...]) -> float:
     """R² of fitted curves on the dynamic tests of ``data`` (``data.arrays(direction)``).
 

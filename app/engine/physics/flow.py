@@ -86,10 +86,7 @@ def iso6358_signed(p1: float, p2: float, c: float, b: float, t1: float, t2: floa
     Returns:
         (q, dq/dp1, dq/dp2) with q > 0 when gas moves 1 → 2 [kg/s].
     """
-    if p1 >= p2:
-        return iso6358_flow(p1, p2, c, b, t1)
-    q, dq_du, dq_dd = iso6358_flow(p2, p1, c, b, t2)
-    return -q, -dq_dd, -dq_du
+    return iso6358_signed_k(p1, p2, c * RHO0_ISO * math.sqrt(T0_ISO / t1), c * RHO0_ISO * math.sqrt(T0_ISO / t2), b)
 
 
 @njit(cache=True, inline="always", error_model="numpy")

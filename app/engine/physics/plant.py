@@ -86,6 +86,9 @@ O_TP = 2  # pneumatic torque/force [N·m or N]
 O_QS = 3  # supply mass flow [kg/s]
 NO = 4
 
+# area_frac indexes the MPYE table directly: its displacement grid must stay uniform
+assert np.allclose(np.diff(tables.MPYE_DISPLACEMENT_V), tables.MPYE_DISPLACEMENT_V[1] - tables.MPYE_DISPLACEMENT_V[0])
+
 MU_AIR = 1.81e-5  # dynamic viscosity [Pa·s] for the tube's laminar resistance
 
 _KERNEL_FIELDS = (
