@@ -145,7 +145,7 @@ def _identify(args: argparse.Namespace) -> int:
         from app.engine.params import DCVParams, PlantParams
 
         plant = PlantParams.linear_rig(args.cylinder,  # type: ignore[arg-type]
-                                       dcv=DCVParams.with_null_zone() if args.null_zone else DCVParams())
+                                       dcv=DCVParams.without_null_zone() if args.no_null_zone else DCVParams())
         cyl = plant.linear
         assert cyl is not None
         LinearInputs(cyl.stroke * 1e3, cyl.bore * 1e3, cyl.rod * 1e3, args.ns, args.nd)
@@ -217,7 +217,7 @@ def _identify_dcv(args: argparse.Namespace) -> int:
     from app.engine.ident import runner
     from app.engine.ident.dcv import THESIS_VALIDATION
 
-    est, run, vrun, cases = runner.identify_dcv_sim(args.dcv_model, seed=args.seed,
+    est, run, vrun, cases = runner.identify_dcv_sim(args.dcv_model, seed=args.seed, null_zone=not args.no_null_zone,
                                                     on_progress=_progress_printer(args.progress))
     n_thesis = len(THESIS_VALIDATION)
 
@@ -226,6 +226,7 @@ def _identify_dcv(args: argparse.Namespace) -> int:
 
     summary = {
         "plant_dcv_model": args.dcv_model,
+        "plant_null_zone": not args.no_null_zone,
         "fit": est.as_dict(),
         "validation": {"thesis_points": [c.summary() for c in cases[:n_thesis]],
                        "held_out": [c.summary() for c in cases[n_thesis:]],
@@ -413,8 +414,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     i.add_argument("--pm", type=float, default=60.0, help="pid: target phase margin [deg]")
     i.add_argument("--dcv-model", choices=("new", "iso"), default="iso",
                    help="dcv: the simulated valve (iso: ISO 6358 with underlaps; new: Eq 3.10–3.11 with known maps)")
-    i.add_argument("--null-zone", action="store_true",
-                   help="linear: simulate the DCVs with the null-zone leakage calibrated on thesis 3.2.4's speeds")
+    i.add_argument("--no-null-zone", action="store_true",
+                   help="linear, dcv: simulate the plain ISO valve, without the null zone calibrated on "
+                        "thesis 3.2.4's speeds (the default valve has it)")
     i.add_argument("--ns", type=int, default=100, help="static experiments per direction (>= 30)")
     i.add_argument("--nd", type=int, default=100, help="dynamic experiments per direction (>= 30)")
     i.add_argument("--seed", type=int, default=0)

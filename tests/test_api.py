@@ -330,7 +330,7 @@ def test_the_cpr_rig_maps_the_valve_and_fits_the_flow_model(client: TestClient) 
     assert "two signals" in r.json()["detail"][0]["msg"]
     assert client.get("/api/engine").json()["state"] == "idle"  # a refusal changes nothing
     r = client.post("/api/engine/estimate/dcv", json={
-        "ps_bar": [5.0], "u_fill": [4.8, 5.2], "u_exh": [], "validation": [["filling", 5.0, 5.0]],
+        "ps_bar": [5.0], "u_fill": [4.6, 5.4], "u_exh": [], "validation": [["filling", 5.0, 5.0]],
         "validation_s": 3.0})
     assert r.status_code == 200 and r.json()["status"]["progress"]["total_tests"] == 3
     assert client.get("/api/health").json()["rate_hz"] == 200.0
@@ -342,9 +342,11 @@ def test_the_cpr_rig_maps_the_valve_and_fits_the_flow_model(client: TestClient) 
     # C3 extended: bore area × stroke + dead volume (params.LinearCylinder)
     assert res["inputs"]["chamber_volume_cm3"] == pytest.approx(245.3, abs=0.5)
     rows = res["parameters"]["filling"]["table_4_1"]
-    assert [row["u"] for row in rows] == [4.8, 5.2]
-    # the valve opens towards the supply as u falls from 5 V: more pressure ratio at 4.8 V than at 5.2 V
-    assert 0.0 < rows[1]["a"] < rows[0]["a"] <= 1.0
+    # (signals away from 5 V: inside the null zone a test takes a minute or more of rig time)
+    assert [row["u"] for row in rows] == [4.6, 5.4]
+    # the valve opens towards the supply as u falls from 5 V: more pressure ratio at 4.6 V than at 5.4 V
+    # (a ratio of two sensors' 0.5 s means: where the valve fills to P_s it reads 1 within their noise)
+    assert 0.0 < rows[1]["a"] < rows[0]["a"] <= 1.0 + 1e-3
     assert all(row["r2"] > 0.9 for row in rows)
     assert set(res["validation_mape_pct"]) == {"new", "standard", "improved", "bobrow"}
     assert all(math.isfinite(v) for v in res["validation_mape_pct"].values())

@@ -12,8 +12,14 @@ CPR mapping (3.2.3 steps 1–5, at each P_s of the grid):
 * **exhausting**, u = 4 … 10 V: fill the chamber to P_s (u = 0 V), apply u,
   wait for Ṗ_a ≈ 0; a(u, P_s) = P_atm / P_a.
 
-"Ṗ_a ≈ 0" is made precise as: the least-squares slope of the last
-:data:`STEADY_WINDOW_S` of P_a is below :data:`STEADY_SLOPE_BAR_S`.
+"Ṗ_a ≈ 0" is made precise by how much P_a still has to move, not by its
+slope alone (:func:`remaining_change`): a slow approach — a signal near 5 V,
+where only the null-zone leakage flows, has time constants of tens of
+seconds — can creep at a slope that looks flat while tenths of a bar are
+still to come. The test ends once the projected further change (of an
+exponential or an algebraic approach, whichever is larger) is below
+:data:`SETTLED_REMAINING_BAR`, or once no motion is resolved above the
+sensor noise; :data:`MAX_TEST_S` caps it.
 
 Flow-model fit (4.1.2): every test's transient gives measured mass flows
 ṁ_m = Ṗ_a·V / (n·R·T) (Eq 4.1; n = 1 isothermal, 1.4 adiabatic), Ṗ_a from a
@@ -49,7 +55,7 @@ from typing import Any, Literal
 import numpy as np
 from numba import njit
 from scipy.ndimage import uniform_filter1d
-from scipy.optimize import least_squares
+from scipy.optimize import brentq, least_squares
 
 from app.engine.constants import BAR, CP_AIR, GAMMA_AIR, R_AIR
 from app.engine.hardware.base import Command
@@ -62,11 +68,14 @@ Mode = Literal["filling", "exhausting"]
 ModelName = Literal["new", "standard", "improved", "bobrow"]
 MODELS: tuple[ModelName, ...] = ("new", "standard", "improved", "bobrow")
 
-STEADY_WINDOW_S = 2.0
-STEADY_SLOPE_BAR_S = 0.002  # ≈ 8× the slope noise of 2 s of 0.003 bar sensor noise at 200 Hz
+SETTLED_REMAINING_BAR = 0.01  # ≈ 3× the sensor's noise; a moves by ≤ 0.005 at P_s ≥ 2 bar
+MIN_WINDOW_S = 0.5  # shortest of the three windows remaining_change compares
+NOISE_K = 4.0  # a difference of two window means counts as motion beyond NOISE_K of its noise SD
 MIN_TEST_S = 2.0
-MAX_TEST_S = 30.0
-MAF_WINDOW_S = 0.05  # moving-average window of the pressure derivative (Eq 4.1)
+MAX_TEST_S = 300.0
+CHECK_EVERY_S = 0.25
+MAF_WINDOW_S = 0.05  # shortest moving-average window of the pressure derivative (Eq 4.1)
+MAF_FRACTION = 0.02  # ... which grows to this share of a slow test's length (see measured_flow)
 MIN_SWING_BAR = 0.05  # a test whose pressure moves less than this shows no flow to fit (Table 4.1's "-")
 FIT_PS_BAR = 5.0  # Table 4.1's supply pressure
 Z_EXTEND = 1.0  # V: pushes the piston onto its end cap before the tests
@@ -172,7 +181,8 @@ class CPRTest:
         ps_bar: Supply pressure set [bar abs].
         a: Cracking pressure ratio [-] (filling P_a/P_s, exhausting P_atm/P_a).
         p_end_bar: Settled chamber pressure [bar abs].
-        settled: Whether Ṗ_a ≈ 0 was reached before :data:`MAX_TEST_S`.
+        settled: Whether Ṗ_a ≈ 0 (see :func:`remaining_change`) was reached
+            before :data:`MAX_TEST_S`.
         t0: Test start on the engine clock [s].
         p_bar: Chamber pressure samples from the signal step on [bar abs].
         dt: Sample period [s].
@@ -332,28 +342,27 @@ class CPRProcedure(Procedure):
         else:
             yield from self._settle(self.cmd(z, 0.0), ps, 0.1, 10.0)
         cmd = self.cmd(z, u)
-        p: list[float] = []
-        s: list[float] = []
-        t0 = self.meas.t
-        n_win = max(3, int(round(STEADY_WINDOW_S / self.dt)))
-        check_every = max(1, int(round(0.25 / self.dt)))
-        tt = np.arange(n_win) * self.dt
-        tt -= tt.mean()
-        den = float(tt @ tt)
-        settled = False
         limit = fixed_s if fixed_s is not None else MAX_TEST_S
-        while self.meas.t - t0 < limit - 0.5 * self.dt:
+        cap = int(math.ceil(limit / self.dt)) + 1
+        p = np.empty(cap)
+        s = np.empty(cap)
+        n = 0
+        t0 = self.meas.t
+        settled = False
+        next_check = max(1, int(round(MIN_TEST_S / self.dt)))
+        while self.meas.t - t0 < limit - 0.5 * self.dt and n < cap:
             yield cmd
-            p.append(self.meas.p_a)
-            s.append(self.meas.p_s)
-            if fixed_s is None and len(p) >= n_win and len(p) % check_every == 0 \
-                    and self.meas.t - t0 >= MIN_TEST_S:
-                slope = float(tt @ np.asarray(p[-n_win:])) / den
-                if abs(slope) < STEADY_SLOPE_BAR_S:
+            p[n] = self.meas.p_a
+            s[n] = self.meas.p_s
+            n += 1
+            if fixed_s is None and n >= next_check:
+                if remaining_change(p[:n], self.dt) < SETTLED_REMAINING_BAR:
                     settled = True
                     break
-        pa = np.asarray(p, dtype=np.float64)
-        psm = np.asarray(s, dtype=np.float64)
+                # every 0.25 s, or 2 % of the test so far: a minutes-long test ends ≤ 2 % late
+                next_check = n + max(int(round(CHECK_EVERY_S / self.dt)), n // 50)
+        pa = p[:n].copy()
+        psm = s[:n].copy()
         tail = max(1, int(0.5 / self.dt))
         p_end = float(pa[-tail:].mean())
         ps_end = float(psm[-tail:].mean())
@@ -366,6 +375,91 @@ class CPRProcedure(Procedure):
         into.tests.append(CPRTest(mode, float(u), float(ps), float(a), p_end, settled, t0, pa, self.dt, psm))
 
 
+def remaining_change(p: np.ndarray, dt: float) -> float:
+    """How much further a settling pressure trace will move [bar] (the CPR tests' Ṗ ≈ 0).
+
+    The trace's last three quarters are split into three equal windows
+    (each at least :data:`MIN_WINDOW_S`) whose means step by d1 = m2 − m1 and
+    d2 = m3 − m2. A first-order approach steps by a constant ratio
+    r = d2/d1 = e^(−W/τ), so its last window's mean has |d2|·r/(1 − r) left
+    to go (Aitken's Δ²) and its last sample the share −ln r/(1/r − 1) of that
+    — exact for an exponential whatever τ is. A valve with ε > 1 closes the
+    last gap algebraically instead (t^−k), which the same ratio also fits;
+    the larger of the two projections is returned. Windows growing with the
+    test fit slow approaches as well as fast ones. Near r = 1 that ratio is
+    fragile, so the noise is taken against the trace: each step is widened
+    by :data:`NOISE_K` of its noise SD (from the scatter of the last
+    window's second differences) before r is formed — the estimate is an
+    upper bound, and a creep whose slowing is not resolved is never called
+    settled. Steps both within that band are no resolved motion: 0.
+
+    Args:
+        p: Pressure samples since the signal step [bar].
+        dt: Sample period [s].
+
+    Returns:
+        The projected further change [bar]; ``inf`` while the trace is not
+        resolvably converging or too short to judge.
+    """
+    n = p.size
+    w = max(int(round(MIN_WINDOW_S / dt)), n // 4)
+    if 3 * w > n:
+        return math.inf
+    m1 = float(p[n - 3 * w:n - 2 * w].mean())
+    m2 = float(p[n - 2 * w:n - w].mean())
+    m3 = float(p[n - w:].mean())
+    d1, d2 = abs(m2 - m1), abs(m3 - m2)
+    noise = float(np.std(np.diff(p[n - w:], 2))) / math.sqrt(6.0)  # white: var(Δ²) = 6σ², trend-free
+    band = NOISE_K * noise * math.sqrt(2.0 / w)  # SD of a difference of two w-sample means, ×K
+    if d1 <= band and d2 <= band:
+        return 0.0
+    hi, lo = d2 + band, d1 - band
+    if lo <= hi:
+        return math.inf
+    r = hi / lo
+    if r <= 0.0:
+        return 0.0
+    # m3 trails the trace's end by its window: of the |d2|·r/(1 − r) the mean has left, the
+    # last sample has the share (W/τ)/(e^(W/τ) − 1) = −ln r/(1/r − 1) left
+    exponential = hi * r / (1.0 - r) * (-math.log(r) / (1.0 / r - 1.0))
+    return max(exponential, _power_law_remaining(hi, r, w / n))
+
+
+def _window_mean_power(a: float, b: float, k: float) -> float:
+    """Mean of s^−k over [a, b] [-]."""
+    if abs(k - 1.0) < 1e-9:
+        return (math.log(b) - math.log(a)) / (b - a)
+    return (b ** (1.0 - k) - a ** (1.0 - k)) / ((1.0 - k) * (b - a))
+
+
+def _power_law_steps(k: float, f: float) -> tuple[float, float]:
+    """Steps of window means of s^−k over [1−3f, 1−2f], [1−2f, 1−f], [1−f, 1] (s = t/T)."""
+    edges = [max(1.0 - (3 - i) * f, 1e-3) for i in range(4)]  # samples start at t = dt, not 0
+    m = [_window_mean_power(edges[i], edges[i + 1], k) for i in range(3)]
+    return m[0] - m[1], m[1] - m[2]
+
+
+def _power_law_remaining(d2: float, r: float, f: float) -> float:
+    """What an algebraic approach P∞ − A·t^−k with step ratio ``r`` has left after the last window [bar].
+
+    A valve whose flow goes as |d|^ε with ε > 1 near its stop (the new
+    model's exhaust branch, Table 4.1) closes the gap as t^−1/(ε−1), not
+    exponentially; read as an exponential such a trace is projected 3–4×
+    too close to its end. ``k`` is solved from ``r`` (windows are fractions
+    ``f`` of the trace, so r depends on k alone) and the remaining A·T^−k
+    follows from the last step ``d2``. 0 where no power law gives ``r``.
+    """
+    def gap(k: float) -> float:
+        s1, s2 = _power_law_steps(k, f)
+        return s2 / s1 - r
+
+    k_lo, k_hi = 1e-3, 60.0
+    if gap(k_lo) <= 0.0 or gap(k_hi) >= 0.0:
+        return 0.0
+    k = float(brentq(gap, k_lo, k_hi, xtol=1e-6))
+    return d2 / _power_law_steps(k, f)[1]
+
+
 # --------------------------------------------------------------------------- flow data
 
 
@@ -373,12 +467,20 @@ def measured_flow(test: CPRTest, inputs: DCVInputs,
                   window_s: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(P_a [Pa], P_s [Pa], ṁ_m [kg/s]) of one test by Eq 4.1 with a moving-average derivative.
 
-    The trace is smoothed by a centred moving average of ``window_s``
-    (default :data:`MAF_WINDOW_S`) and differentiated; a window at each end
-    (where the filter is one-sided) is dropped. ṁ > 0 flows into the chamber.
+    The trace is smoothed by a centred moving average of ``window_s`` and
+    differentiated; a window at each end (where the filter is one-sided) is
+    dropped. ṁ > 0 flows into the chamber. The default window is
+    :data:`MAF_WINDOW_S`, or :data:`MAF_FRACTION` of the test's length if
+    that is longer: a test that ran for minutes (a signal in the null zone,
+    flows 25× smaller) has a time constant of tens of seconds, and with the
+    50 ms window its derivative would be the sensor noise's (≈ 0.1 bar/s
+    against flows of ≈ 0.01 bar/s), while a window of 2 % of its length
+    still bends the transient by < 0.1 %.
     """
     p = test.p_bar * BAR
-    w = max(3, int(round((MAF_WINDOW_S if window_s is None else window_s) / test.dt)) | 1)
+    if window_s is None:
+        window_s = max(MAF_WINDOW_S, MAF_FRACTION * p.size * test.dt)
+    w = max(3, int(round(window_s / test.dt)) | 1)
     if p.size < 3 * w:
         return np.empty(0), np.empty(0), np.empty(0)
     pf = uniform_filter1d(p, w, mode="nearest")
@@ -566,11 +668,24 @@ class ModeModel:
         return float(interp2_clip(u, ps, self.u_cpr, self.ps_cpr, np.nan_to_num(self.a, nan=1.0)))
 
     def signal_params(self, u: float) -> dict[str, float]:
-        """1-D lookups of every per-signal parameter at ``u`` (clipped)."""
+        """1-D lookups of every per-signal parameter at ``u`` (clipped).
+
+        Between two signals g is not looked up itself: ε and g trade off (the
+        flow is g·|d|^ε with |d| ~ 10⁵ Pa), so where ε changes from one
+        signal to the next (0.50 → 0.60 between 4.9 and 5.0 V on the
+        simulated rig's default valve) a straight line through g predicts
+        the midpoint's pressure 6–21 % off. What is looked up is the flow at a 1 bar difference,
+        G = g·(1 bar)^ε, on a log scale (it spans decades across the null
+        zone); g = G/(1 bar)^ε at the interpolated ε. At the signals
+        themselves this is Table 4.1's g.
+        """
         us = np.array([s.u for s in self.signals])
         out = {}
-        for key in ("eps", "g", "std_area", "imp_area", "imp_b", "imp_eps"):
+        for key in ("eps", "std_area", "imp_area", "imp_b", "imp_eps"):
             out[key] = float(np.interp(u, us, np.array([getattr(s, key) for s in self.signals])))
+        eps = np.array([s.eps for s in self.signals])
+        log_g_ref = np.log(np.maximum([s.g for s in self.signals], 1e-300)) + eps * math.log(BAR)
+        out["g"] = math.exp(float(np.interp(u, us, log_g_ref)) - out["eps"] * math.log(BAR))
         return out
 
     def k(self, ps: float) -> float:

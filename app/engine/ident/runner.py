@@ -116,7 +116,7 @@ def dcv_inputs_for(params: PlantParams, **kw: Any) -> Any:
     return DCVInputs(chamber_volume_cm3=cpr_volume_cm3(params), temperature_k=params.t_atm, **kw)
 
 
-def identify_dcv_sim(model: str = "new", seed: int = 0, params: PlantParams | None = None,
+def identify_dcv_sim(model: str = "new", seed: int = 0, params: PlantParams | None = None, null_zone: bool = True,
                      inputs: Any = None, validation: list[tuple[str, float, float]] | None = None,
                      on_progress: Callable[[Progress], None] | None = None) -> Any:
     """CPR mapping, flow-model fit and validation runs on the simulated C3 set-up (thesis 4.1).
@@ -126,6 +126,8 @@ def identify_dcv_sim(model: str = "new", seed: int = 0, params: PlantParams | No
             maps, to check recovery) or ``"iso"`` (ISO 6358 with underlaps).
         seed: Sensor-noise seed.
         params: Plant (default: C3 linear rig with ``model``).
+        null_zone: Whether the default plant's valve has its null zone
+            (:class:`~app.engine.params.DCVParams`); ignored with ``params``.
         inputs: :class:`DCVInputs` (default: the thesis's grid for this chamber).
         validation: (mode, u, P_s) cases run for 15 s after the fit
             (default: Figures 4.6–4.11 plus the held-out points).
@@ -139,8 +141,9 @@ def identify_dcv_sim(model: str = "new", seed: int = 0, params: PlantParams | No
     from app.engine.params import DCVParams, SensorParams
 
     # Figure 3.10: PS-0 measures the DCV's supply port
-    params = params or PlantParams.linear_rig("C3", dcv=DCVParams(model=model),  # type: ignore[arg-type]
-                                              sensors=SensorParams(supply_tap="prv_a"))
+    if params is None:
+        dcv = DCVParams(model=model) if null_zone else DCVParams.without_null_zone(model=model)  # type: ignore[arg-type]
+        params = PlantParams.linear_rig("C3", dcv=dcv, sensors=SensorParams(supply_tap="prv_a"))
     inputs = inputs or dcv_inputs_for(params)
     proc = CPRProcedure(inputs)
     run = simulate(proc, params, DCV_RATE_HZ, seed=seed, on_progress=on_progress)
