@@ -32,6 +32,7 @@ VISIBLE: dict[str, list[str]] = {
     "prv_steps": ["valve_dynamics", "tube_dynamics", "heat_transfer", "sensor_bias", "supply_droop"],
     "dcv_steps": ["tube_dynamics", "valve_dynamics", "supply_droop", "heat_transfer"],
     "hold_closed": ["vane_leakage", "external_leakage", "heat_transfer", "sensor_bias"],
+    "fill_shut": ["heat_transfer", "external_leakage", "vane_leakage"],
     "friction_sweep": ["presliding_friction", "inertia", "sensor_bias"],
     "sine_sweep": ["inertia", "presliding_friction"],
     "isotonic": ["inertia", "presliding_friction", "valve_dynamics", "supply_droop"],
@@ -42,6 +43,7 @@ DESCRIPTION: dict[str, str] = {
     "prv_steps": "PRV set-point steps, one chamber at a time, DCVs open, handle held at neutral",
     "dcv_steps": "DCV steps at constant PRV pressure, handle held at neutral",
     "hold_closed": "fill the chambers to unequal pressures, then DCVs at 5 V (closed) for a hold",
+    "fill_shut": "one chamber at a time: fill fast from a pressurised line, shut the DCVs at 5 V at once and hold",
     "friction_sweep": "the user moves the handle back and forth at several speeds, chambers at equal pressure",
     "sine_sweep": "the user rocks the handle at rising frequency (accelerations for the inertia)",
     "isotonic": "a Default-controller isotonic workout (closed loop)",
@@ -87,7 +89,7 @@ def schedules(rep: int = 0, scale: float = 1.0) -> list[Schedule]:
 
     Args:
         rep: Repetition index (0, 1, …).
-        scale: Duration factor (1 = the full protocol, ≈ 70 s per repetition).
+        scale: Duration factor (1 = the full protocol, ≈ 81 s per repetition with the isotonic run).
     """
     a = 1.0 + 0.15 * rep  # amplitude factor of the repetition
     hold0 = HumanProgram.hold(0.0, 1.0)
@@ -118,6 +120,30 @@ def schedules(rep: int = 0, scale: float = 1.0) -> list[Schedule]:
         return (zh_a, zh_b, 0.0, 10.0) if t < fill else (zh_a, zh_b, 5.0, 5.0)
 
     out.append(Schedule("hold_closed", dur, hold_cmd, hold0, 2.0, True))
+
+    # A fill fast enough to be near-adiabatic, then the DCVs shut at once: the gas, warmed by the
+    # compression, cools towards the wall and the pressure sags by up to 1 − 1/γ of its rise. In
+    # hold_closed the PRV fills slowly and for 2 s, so the gas has cooled before the shut and a
+    # smaller dead volume can mimic what is left; a sag at constant volume it cannot. The shut is
+    # possible because the MPYE at 5 V leaks only its null zone's clearance flow.
+    vent, fill_s, shut_s = 1.5 * scale, 0.4, 5.0 * scale
+    zs = 3.5 * a  # the supply line, pressurised behind the DCV while the chamber vents
+    side = vent + fill_s + shut_s
+
+    def fill_cmd(t: float) -> tuple[float, float, float, float]:
+        first = t < side
+        tt = t if first else t - side
+        if tt < vent:  # the chamber to fill exhausts, the other holds at 1 V
+            u_fill = 10.0 if first else 0.0
+        elif tt < vent + fill_s:
+            u_fill = 0.0 if first else 10.0
+        else:
+            u_fill = 5.0  # shut; the PRVs stay where they were, so the null zone's leak barely moves P
+        if first:
+            return (zs, 1.0, u_fill, 10.0 if u_fill != 5.0 else 5.0)
+        return (1.0, zs, 0.0 if u_fill != 5.0 else 5.0, u_fill)
+
+    out.append(Schedule("fill_shut", 2 * side, fill_cmd, hold0, 2.0, True))
 
     # the user sweeps ±amp at three speeds, both chambers at equal pressure
     amp = 0.6 * a
