@@ -131,17 +131,15 @@ def schedules(rep: int = 0, scale: float = 1.0) -> list[Schedule]:
     side = vent + fill_s + shut_s
 
     def fill_cmd(t: float) -> tuple[float, float, float, float]:
-        first = t < side
+        first = t < side  # chamber a first, then chamber b
         tt = t if first else t - side
-        if tt < vent:  # the chamber to fill exhausts, the other holds at 1 V
-            u_fill = 10.0 if first else 0.0
-        elif tt < vent + fill_s:
-            u_fill = 0.0 if first else 10.0
-        else:
-            u_fill = 5.0  # shut; the PRVs stay where they were, so the null zone's leak barely moves P
+        if tt >= vent + fill_s:  # shut; each PRV stays where it was, so the null zone's leak barely moves P
+            return (zs, 1.0, 5.0, 5.0) if first else (1.0, zs, 5.0, 5.0)
+        filling = tt >= vent
+        # DCV-a fills below 5 V, DCV-b above (thesis 3.2.4); the other chamber stays on its PRV at 1 V
         if first:
-            return (zs, 1.0, u_fill, 10.0 if u_fill != 5.0 else 5.0)
-        return (1.0, zs, 0.0 if u_fill != 5.0 else 5.0, u_fill)
+            return (zs, 1.0, 0.0 if filling else 10.0, 10.0)
+        return (1.0, zs, 0.0, 10.0 if filling else 0.0)
 
     out.append(Schedule("fill_shut", 2 * side, fill_cmd, hold0, 2.0, True))
 
