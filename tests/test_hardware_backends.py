@@ -4,6 +4,7 @@ calibration, and the backend chosen by configuration alone."""
 from __future__ import annotations
 
 import array
+import itertools
 import math
 import time
 from pathlib import Path
@@ -465,3 +466,20 @@ def test_the_readme_example_configuration_is_valid(tmp_path: Path) -> None:
     (tmp_path / "hw.yaml").write_text(block)
     cfg = load_config(tmp_path / "hw.yaml")
     assert cfg.backend == "modbus" and cfg.link().watchdog_register == 4096 and cfg.limits == {"p_max_bar": 6.0}
+
+
+def test_the_simulated_rig_never_samples_the_same_instant_twice() -> None:
+    """A tick late by most of a period followed at once by an on-time one reads the clock twice
+    within half a plant step; the plant still moves on, so the run log's time increases (one
+    loaded CI run stored a stopped run whose time did not)."""
+    from app.engine.hardware.sim import SimulatedRig
+
+    clock = SimClock()
+    rig = SimulatedRig(clock)
+    rig.activate()
+    ts = []
+    for dt in (0.005, 0.0049, 0.0001, 0.0, 0.005):
+        clock.sleep_until(clock.now() + dt)
+        ts.append(rig.read().t)
+    assert all(b > a for a, b in itertools.pairwise(ts)), ts
+    assert ts[-1] == pytest.approx(clock.now(), abs=2 * rig.sim.kernel.h)  # and it does not run ahead

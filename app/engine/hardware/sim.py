@@ -56,6 +56,7 @@ class SimulatedRig(HardwareInterface):
 
             self.sim.x[:] = initial_state(self.params, 0.0, pw_bar, pw_bar)
         self._t0 = 0.0
+        self._read_before = False
         self.active = False
         self.last_applied = self.safe_command()
 
@@ -94,8 +95,20 @@ class SimulatedRig(HardwareInterface):
         self.sim.kernel = pl.build_kernel(params)
 
     def read(self) -> Measurement:
-        """Integrate up to now, then sample."""
-        m = self.sim.advance_and_measure(self.clock.now() - self._t0, self.period)
+        """Integrate up to now, then sample.
+
+        Each read after the first advances the plant by at least one of its
+        steps: the plant moves in whole steps (0.5 ms), and a late tick
+        followed at once by an on-time one (the paced loop does not burst,
+        but a tick late by most of a period leaves the next one less than
+        half a step later) would otherwise sample the same instant twice —
+        a run log whose time does not increase, which the diagnosis refuses.
+        """
+        t = self.clock.now() - self._t0
+        if self._read_before:
+            t = max(t, self.sim.t + self.sim.kernel.h)
+        self._read_before = True
+        m = self.sim.advance_and_measure(t, self.period)
         return Measurement(self.sim.t, float(m[sn.M_PA]), float(m[sn.M_PB]), float(m[sn.M_PS]),
                            float(m[sn.M_POS]), float(m[sn.M_VEL]), float(m[sn.M_TQ]))
 
