@@ -100,8 +100,6 @@ LINEAR_IDENT_RATE_HZ = 200.0
 """Linear friction identification rate [Hz] (thesis 4.2.2)."""
 
 
-
-
 @dataclass(frozen=True)
 class Rig:
     """Which rig the station drives.
