@@ -16,7 +16,8 @@ add (each at most three bounded parameters, named as in
 3. **Which**: each candidate is fitted on the calibration experiments together
    with the baseline parameters and scored on held-out experiments: NRMSE per
    channel, gap closure GC = (E_base − E_with)/(E_base − E_floor) with E the
-   channel-mean NRMSE and E_floor the noise floor's, ΔBIC on the calibration
+   channel-mean NRMSE and E_floor the noise floor's (the median of each
+   log's noise estimate), ΔBIC on the calibration
    fit, a bootstrap CI of GC over held-out experiments (or over blocks of
    time when fewer than four are held out). An effect is *significant* when
    ΔBIC > 10 (strong evidence), the CI's lower end is above zero, GC ≥ 0.2,
@@ -35,9 +36,14 @@ add (each at most three bounded parameters, named as in
 Optional family attributes (for expensive, piecewise-smooth models such as a
 replayed simulator): ``diff_step`` and ``max_nfev`` for the descent,
 ``grid_points`` for a coarse grid start over each candidate's parameters,
-``frozen(effects)`` naming baseline parameters a candidate cannot trade with
+``frozen(effects)`` naming parameters the candidate being added cannot trade with
 (held at the reference fit), and ``prefetch(preps, params_list, effects)`` to
-compute predictions for many parameter sets at once (e.g. on all cores).
+compute predictions for many parameter sets at once (e.g. on all cores),
+and ``shared_scale``: groups of channels of one quantity normalised by one
+scale, the largest of their SDs (a regulated supply's own SD is its noise:
+normalised by it, its NRMSE is ≈ 1 whatever the model, and the ±1–2 %
+error of any noise estimate would outweigh every other channel's gap).
+A NaN in a measured channel marks a sample the family does not score.
 """
 
 from __future__ import annotations
@@ -181,23 +187,37 @@ class Scores:
     cnt: np.ndarray
 
 
+TRIM_K = 3.0  # second differences beyond this many SDs are signal (steps), not noise
+_TRIM_VAR = 1.0 - 2.0 * TRIM_K * float(stats.norm.pdf(TRIM_K)) / (2.0 * float(stats.norm.cdf(TRIM_K)) - 1.0)
+
+
 def white_noise_sd(x: np.ndarray) -> float:
     """SD of the white noise on a sampled signal, robust to the signal itself.
 
-    From the median absolute second difference: for white noise of SD σ the
-    second difference has SD σ·√6, while a smooth signal (or a few steps)
-    barely moves the median.
+    For white noise of SD σ the second difference has SD σ·√6, while a
+    smooth signal barely moves it. The median absolute second difference
+    gives a first value that steps cannot move; the variance of the second
+    differences within ±3 of those SDs (corrected for the trimmed Gaussian
+    tails) then gives the estimate. The median alone moves in whole
+    quantisation steps on an ADC's output (±6 % on the station's pressure
+    channels); the trimmed variance does not, and has twice its efficiency.
     """
     d2 = np.diff(np.asarray(x, dtype=float), 2)
     d2 = d2[np.isfinite(d2)]
     if d2.size == 0:
         return 0.0
-    mad = float(np.median(np.abs(d2 - np.median(d2))) / 0.6745 / math.sqrt(6.0))
+    r = d2 - np.median(d2)
+    sd = float(np.median(np.abs(r)) / 0.6745 / math.sqrt(6.0))
+    for _ in range(3):
+        if sd <= 0.0:
+            break
+        keep = r[np.abs(r) < TRIM_K * math.sqrt(6.0) * sd]
+        sd = math.sqrt(float(np.mean(keep**2)) / _TRIM_VAR / 6.0) if keep.size else sd
     # a quantised signal with little noise has a zero median difference; its floor is the LSB's
     steps = np.abs(np.diff(np.asarray(x, dtype=float)))
     steps = steps[steps > 0]
     lsb = float(steps.min()) if steps.size else 0.0
-    return max(mad, lsb / math.sqrt(12.0))
+    return max(sd, lsb / math.sqrt(12.0))
 
 
 def _specs(family: Family, effects: Sequence[str]) -> list[Param]:
@@ -233,9 +253,18 @@ def channel_scales(family: Family, preps: list[Any]) -> dict[str, float]:
     out = {}
     for c in family.channels:
         noise = [family.noise(p)[c] for p in preps]
-        spread = float(np.std(np.concatenate([family.measured(p)[c] for p in preps])))
+        spread = float(np.nanstd(np.concatenate([family.measured(p)[c] for p in preps])))
         out[c] = max(float(np.sqrt(np.mean(np.square(noise)))), 1e-3 * spread, 1e-12)
     return out
+
+
+def channel_spread(family: Family, meas: list[dict[str, np.ndarray]]) -> np.ndarray:
+    """NRMSE normaliser per channel: its SD over ``meas``, or its group's largest (``shared_scale``)."""
+    sd = {c: float(np.nanstd(np.concatenate([m[c] for m in meas]))) or 1.0 for c in family.channels}
+    for group in getattr(family, "shared_scale", ()):
+        top = max(sd[c] for c in group)
+        sd |= {c: top for c in group}
+    return np.array([sd[c] for c in family.channels])
 
 
 class Cancelled(Exception):
@@ -246,6 +275,12 @@ def raise_if_stopped(stop: threading.Event | None, what: str = "diagnosis") -> N
     """Raise :class:`Cancelled` once ``stop`` is set."""
     if stop is not None and stop.is_set():
         raise Cancelled(f"the {what} was stopped before it finished")
+
+
+def _weighted(r: np.ndarray, meas: np.ndarray) -> np.ndarray:
+    """Residuals for least squares: an unscored sample (NaN measurement) weighs nothing, a
+    prediction that failed (NaN where something was measured) weighs heavily."""
+    return np.where(np.isfinite(meas), np.where(np.isfinite(r), r, 1e3), 0.0)
 
 
 def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: dict[str, float] | None = None,
@@ -278,7 +313,7 @@ def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: 
             pr = family.predict(p, v, effects)
             for c in family.channels:
                 r = (pr[c] - m[c]) / scales[c]
-                parts.append(np.where(np.isfinite(r), r, 1e3))
+                parts.append(_weighted(r, m[c]))
         return np.concatenate(parts)
 
     lo, hi = _bounds(specs)
@@ -411,7 +446,7 @@ def where(family: Family, preps: list[Any], f: Fit) -> list[dict[str, Any]]:
                                  "bias": float(np.nanmean(r)), "noise": noise[c],
                                  "autocorr_lag1_10": ac, "ljung_box_p": p_white, "regimes": {}, "input_xcorr": {}}
         for k, ms in masks.items():
-            mk = np.concatenate(ms)
+            mk = np.concatenate(ms) & np.isfinite(r)  # unscored samples (NaN) belong to no regime
             if mk.sum() >= 5:
                 entry["regimes"][k] = {"rms": float(np.sqrt(np.nanmean(r[mk] ** 2))), "bias": float(np.nanmean(r[mk])),
                                        "n": int(mk.sum()), "share": float(mk.mean())}
@@ -483,33 +518,51 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
 
 def _grid_start(family: Family, preps: list[Any], effects: tuple[str, ...], ref: dict[str, float],
                 new: list[Param], points: int, scales: dict[str, float]) -> dict[str, float]:
-    """The best point of a coarse grid over the new effect's parameters (the rest at ``ref``).
+    """The best point of a coarse grid over the new effect's parameters (the rest at ``ref``), refined once.
 
     A replayed simulator with switching elements has a rough cost surface on
     which finite-difference descent from one start stalls; a grid over at
     most three bounded parameters (``points``, ``⌈points/2⌉`` or 3 values per
-    axis) finds the right basin first.
+    axis) finds the right basin first. A second grid of as many points spans
+    one coarse step either side of the best: valleys narrower than a coarse
+    step (a supply droop's resistance and time constant trade along one,
+    a decade apart on the coarse grid) are found there.
     """
     per = {1: points, 2: max(3, (points + 1) // 2)}.get(len(new), 3)
-    axes = []
-    for p in new:
-        g = np.linspace(math.log(p.lo), math.log(p.hi), per) if p.log else np.linspace(p.lo, p.hi, per)
-        axes.append(np.exp(g) if p.log else g)
-    cands = [ref | {p.name: float(v) for p, v in zip(new, combo, strict=True)} for combo in itertools.product(*axes)]
-    prefetch = getattr(family, "prefetch", None)
-    if prefetch is not None:
-        prefetch(preps, cands, effects)
     meas = [family.measured(p) for p in preps]
-    best, best_cost = cands[0], math.inf
-    for v in cands:
-        cost = 0.0
-        for p, m in zip(preps, meas, strict=True):
-            pr = family.predict(p, v, effects)
-            for c in family.channels:
-                r = (pr[c] - m[c]) / scales[c]
-                cost += float(np.sum(np.where(np.isfinite(r), r, 1e3) ** 2))
-        if cost < best_cost:
-            best, best_cost = v, cost
+    prefetch = getattr(family, "prefetch", None)
+
+    def best_of(axes: list[np.ndarray]) -> tuple[dict[str, float], float]:
+        cands = [ref | {p.name: float(v) for p, v in zip(new, combo, strict=True)}
+                 for combo in itertools.product(*axes)]
+        if prefetch is not None:
+            prefetch(preps, cands, effects)
+        best, best_cost = cands[0], math.inf
+        for v in cands:
+            cost = 0.0
+            for p, m in zip(preps, meas, strict=True):
+                pr = family.predict(p, v, effects)
+                for c in family.channels:
+                    r = (pr[c] - m[c]) / scales[c]
+                    cost += float(np.sum(_weighted(r, m[c]) ** 2))
+            if cost < best_cost:
+                best, best_cost = v, cost
+        return best, best_cost
+
+    def axis(p: Param, lo: float, hi: float) -> np.ndarray:
+        return np.exp(np.linspace(math.log(lo), math.log(hi), per)) if p.log else np.linspace(lo, hi, per)
+
+    coarse, _ = best_of([axis(p, p.lo, p.hi) for p in new])
+    fine = []
+    for p in new:
+        v = coarse[p.name]
+        if p.log:
+            step = (math.log(p.hi) - math.log(p.lo)) / (per - 1)
+            fine.append(axis(p, max(p.lo, v * math.exp(-step)), min(p.hi, v * math.exp(step))))
+        else:
+            step = (p.hi - p.lo) / (per - 1)
+            fine.append(axis(p, max(p.lo, v - step), min(p.hi, v + step)))
+    best, _ = best_of(fine)  # the coarse best is on the fine grid too, so this never does worse
     return best
 
 
@@ -550,8 +603,11 @@ def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     blocks = blocks or (1 if len(held) >= 4 else 8)
     scales = channel_scales(family, calib)
     held_meas = [family.measured(p) for p in held]
-    spread = np.array([float(np.std(np.concatenate([m[c] for m in held_meas]))) or 1.0 for c in family.channels])
-    floor = np.array([float(np.sqrt(np.mean([family.noise(p)[c] ** 2 for p in held]))) for c in family.channels])
+    spread = channel_spread(family, held_meas)
+    # a sensor's noise is the same in every log of one rig: the median over the logs keeps an
+    # experiment whose signal has content at the sample rate (a fast sine's torque) from
+    # passing that content off as noise and raising the floor
+    floor = np.array([float(np.median([family.noise(p)[c] for p in held])) for c in family.channels])
     norm = _Norm(spread, floor)
 
     base = fit(family, calib, (), scales=scales, stop=stop)

@@ -89,7 +89,8 @@ def schedules(rep: int = 0, scale: float = 1.0) -> list[Schedule]:
 
     Args:
         rep: Repetition index (0, 1, …).
-        scale: Duration factor (1 = the full protocol, ≈ 81 s per repetition with the isotonic run).
+        scale: Duration factor (1 = the full protocol, ≈ 81 s of commands per repetition
+            with the isotonic run; each open-loop log adds :data:`PREROLL_S` at rest).
     """
     a = 1.0 + 0.15 * rep  # amplitude factor of the repetition
     hold0 = HumanProgram.hold(0.0, 1.0)
@@ -170,18 +171,39 @@ def schedules(rep: int = 0, scale: float = 1.0) -> list[Schedule]:
     return out
 
 
+PREROLL_S = 0.25
+"""Rest before an experiment's first step, logged [s].
+
+The rig holds the start pressure on its PRVs with the DCVs shut; the log
+begins there, so every command step is inside it. A replay cannot know
+the valves' state before a log begins and starts them at its first
+command: a log that began on a step would put a lagging valve's first
+50 ms beyond any model (with a 10 ms DCV lag, 90 % of the true model's
+held-out error).
+"""
+
+
 def run_schedule(params: PlantParams, s: Schedule, seed: int = 0) -> np.ndarray:
-    """Run one open-loop experiment on a simulated rig; returns the (n, 11) log."""
-    from app.engine.physics.plant import initial_state
+    """Run one open-loop experiment on a simulated rig; returns the (n, 11) log.
+
+    The log starts with :data:`PREROLL_S` at rest, then ``s.commands`` (the
+    user's program is not shifted: every protocol program rests that long).
+    """
+    from app.engine.physics import plant as pl
 
     dt = 1.0 / RATE_HZ
-    n = int(round(s.duration / dt))
-    sim = Simulator(params, seed=seed, program=s.program, x0=initial_state(params, 0.0, s.pw_bar, s.pw_bar))
+    n = int(round((s.duration + PREROLL_S) / dt))
+    z_rest = s.pw_bar - params.p_atm / 1e5  # 1 V ≙ 1 bar gauge (Eq 3.7)
+    rest = (z_rest, z_rest, 5.0, 5.0)
+    x0 = pl.initial_state(params, 0.0, s.pw_bar, s.pw_bar)
+    x0[pl.I_ZA], x0[pl.I_ZB], x0[pl.I_UA], x0[pl.I_UB] = rest
+    sim = Simulator(params, seed=seed, program=s.program, x0=x0)
+    sim.set_command(*rest)
     log = np.empty((n, len(LOG_COLUMNS)))
     for i in range(n):
         t = i * dt
         m = sim.advance_and_measure(t, dt)
-        cmd = s.commands(t)
+        cmd = rest if t < PREROLL_S - 1e-9 else s.commands(t - PREROLL_S)
         log[i, 0] = t
         log[i, 1:5] = cmd
         log[i, 5:] = m  # p_a, p_b, p_s, θ, ω, T_i: the measurement vector's order

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from app.engine.diagnosis.core import diagnose
+from app.engine.diagnosis.core import channel_spread, diagnose
 from app.engine.diagnosis.logs import Experiment
 from app.engine.diagnosis.protocol import run_protocol
 from app.engine.diagnosis.rotary import RotaryFamily
@@ -101,11 +101,10 @@ def oracle_gap_closure(report: dict[str, Any], held: list[Experiment], x: dict[s
     preps = [fam.prepare(e) for e in held]
     meas = [fam.measured(p) for p in preps]
     nr = []
-    for c in fam.channels:
-        spread = float(np.std(np.concatenate([m[c] for m in meas]))) or 1.0
-        sse = sum(float(np.nansum((fam.predict(p, x, effects)[c] - m[c]) ** 2)) for p, m in zip(preps, meas,
-                                                                                                 strict=True))
-        cnt = sum(len(m[c]) for m in meas)
+    for c, spread in zip(fam.channels, channel_spread(fam, meas), strict=True):
+        res = [fam.predict(p, x, effects)[c] - m[c] for p, m in zip(preps, meas, strict=True)]
+        sse = sum(float(np.nansum(r**2)) for r in res)
+        cnt = sum(int(np.isfinite(r).sum()) for r in res)
         nr.append(math.sqrt(sse / cnt) / spread)
     hf = report["how_far"]
     e_or = float(np.mean(nr))
