@@ -199,8 +199,9 @@ def white_noise_sd(x: np.ndarray) -> float:
     gives a first value that steps cannot move; the variance of the second
     differences within ±3 of those SDs (corrected for the trimmed Gaussian
     tails) then gives the estimate. The median alone moves in whole
-    quantisation steps on an ADC's output (±6 % on the station's pressure
-    channels); the trimmed variance does not, and has twice its efficiency.
+    quantisation steps on an ADC's output (0.86–1.11 × the truth on the
+    station's pressure channels); the trimmed variance does not, and
+    scatters less from log to log (2 % against 3.3 %).
     """
     d2 = np.diff(np.asarray(x, dtype=float), 2)
     d2 = d2[np.isfinite(d2)]
@@ -552,7 +553,7 @@ def _grid_start(family: Family, preps: list[Any], effects: tuple[str, ...], ref:
     def axis(p: Param, lo: float, hi: float) -> np.ndarray:
         return np.exp(np.linspace(math.log(lo), math.log(hi), per)) if p.log else np.linspace(lo, hi, per)
 
-    coarse, _ = best_of([axis(p, p.lo, p.hi) for p in new])
+    coarse, coarse_cost = best_of([axis(p, p.lo, p.hi) for p in new])
     fine = []
     for p in new:
         v = coarse[p.name]
@@ -562,8 +563,8 @@ def _grid_start(family: Family, preps: list[Any], effects: tuple[str, ...], ref:
         else:
             step = (p.hi - p.lo) / (per - 1)
             fine.append(axis(p, max(p.lo, v - step), min(p.hi, v + step)))
-    best, _ = best_of(fine)  # the coarse best is on the fine grid too, so this never does worse
-    return best
+    best, best_cost = best_of(fine)
+    return best if best_cost <= coarse_cost else coarse
 
 
 def _rank_key(c: Candidate) -> tuple[bool, bool, float]:

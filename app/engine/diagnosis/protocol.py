@@ -186,8 +186,10 @@ held-out error).
 def run_schedule(params: PlantParams, s: Schedule, seed: int = 0) -> np.ndarray:
     """Run one open-loop experiment on a simulated rig; returns the (n, 11) log.
 
-    The log starts with :data:`PREROLL_S` at rest, then ``s.commands`` (the
-    user's program is not shifted: every protocol program rests that long).
+    The log starts with :data:`PREROLL_S` at rest, then ``s.commands``. The
+    user's program is not shifted: the holds and the friction sweep stay
+    still that long; the sine sweep starts rocking within it, its amplitude
+    ramping up from zero over 0.5 s.
     """
     from app.engine.physics import plant as pl
 
