@@ -43,6 +43,16 @@ def test_bad_diagnosis_requests_are_refused_and_store_nothing(client: TestClient
 
 
 @pytest.mark.slow
+def test_the_protocol_table_is_served_from_the_engine(client: TestClient) -> None:
+    from app.engine.diagnosis.protocol import PREROLL_S, VISIBLE
+    from app.engine.params import EFFECT_NAMES
+
+    t = client.get("/api/diagnoses/protocol").json()
+    assert [e["name"] for e in t["experiments"]] == list(VISIBLE)
+    assert {x for e in t["experiments"] for x in e["makes_visible"]} == set(EFFECT_NAMES)
+    assert all(e["description"] for e in t["experiments"]) and t["preroll_s"] == PREROLL_S
+
+
 def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestClient) -> None:
     r = client.post("/api/diagnoses", json={"protocol": {"effects": ["sensor_bias"], "magnitude": 2, "seed": 3,
                                                           "scale": 0.4}})

@@ -288,6 +288,9 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.goto(base + "/static/diagnosis.html")
+    # the protocol table comes from the engine (GET /api/diagnoses/protocol), not a copy in the page
+    expect(page.locator("#protocol")).to_contain_text("fill_shut")
+    expect(page.locator("#protocol")).to_contain_text("heat transfer, external leakage, vane leakage")
     page.select_option("#src", "files")
     expect(page.locator("#logfiles")).to_be_visible()
     page.set_input_files("#logfiles", good[:1])

@@ -41,7 +41,7 @@ class ProtocolSource(BaseModel):
         magnitude: 1 (smaller) or 2 (larger) of the suite's two magnitudes.
         param_error: Random error on the recalibratable nominal parameters (0.2 = ±20 %).
         seed: Seed of the parameter errors and the sensor noise.
-        scale: Duration factor (1 ≈ 70 s of logs per repetition).
+        scale: Duration factor (1 ≈ 83 s of logs per repetition).
     """
 
     effects: list[EffectName] = Field(default_factory=list, max_length=9)
@@ -71,7 +71,44 @@ class DiagnosisStarted(BaseModel):
     status: Literal["running"] = "running"
 
 
+class ProtocolExperiment(BaseModel):
+    """One experiment of the diagnosis protocol.
+
+    Attributes:
+        name: Experiment kind (logs are named ``NAME-REP``, e.g. ``hold_closed-2``).
+        description: What the station does in it.
+        makes_visible: The candidate effects it shows.
+    """
+
+    name: str
+    description: str
+    makes_visible: list[EffectName]
+
+
+class ProtocolTable(BaseModel):
+    """The diagnosis protocol (issue 6 §6): every experiment is run twice; the second run of each is held out.
+
+    Attributes:
+        experiments: In the order the station runs them.
+        preroll_s: Rest logged before each open-loop experiment's first step [s].
+    """
+
+    experiments: list[ProtocolExperiment]
+    preroll_s: float
+
+
 log = logging.getLogger(__name__)
+
+
+@router.get("/protocol", response_model=ProtocolTable,
+            summary="The diagnosis protocol: each experiment and the effects it makes visible")
+def protocol_table() -> ProtocolTable:
+    from app.engine.diagnosis.protocol import DESCRIPTION, PREROLL_S, VISIBLE
+
+    # validated against EffectName: an engine table naming an unknown effect fails here, not in the page
+    return ProtocolTable(experiments=[ProtocolExperiment.model_validate({"name": k, "description": DESCRIPTION[k],
+                                                                         "makes_visible": v})
+                                      for k, v in VISIBLE.items()], preroll_s=PREROLL_S)
 
 
 def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, sources: list[Path],
