@@ -91,8 +91,8 @@ def test_the_supply_level_is_profiled_out(nominal_logs: list) -> None:
 def test_protocol_logs_begin_at_rest_so_a_lagging_valve_replays_from_the_start() -> None:
     """Every protocol log opens with PREROLL_S of the rest commands (PRVs holding the start
     pressure, DCVs shut), so its first step is inside it. A replay starts the valves at the
-    log's first command: on a log that began with a step, a valve lagging 30/100 ms put the true
-    model ≈ 0.5 bar off for the first tens of ms (90 % of its held-out error)."""
+    log's first command: on logs that began with a step, valves lagging 10/30 ms put the true
+    model up to 1 bar off for the first 50 ms (90 % of its held-out error)."""
     rig = PlantParams().with_effects(valve_dynamics=ValveDynamicsEffect(0.03, 0.1))
     e = run_protocol(rig, seed=2, repetitions=1, kinds=["dcv_steps"])[0]
     n0 = int(round(PREROLL_S / e.dt))
