@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.engine.constants import BAR
 from app.engine.diagnosis.core import raise_if_stopped
 from app.engine.diagnosis.logs import INPUTS, MEASURED, Experiment, write_log
 from app.engine.human import HumanProgram, isotonic
@@ -195,7 +196,7 @@ def run_schedule(params: PlantParams, s: Schedule, seed: int = 0) -> np.ndarray:
 
     dt = 1.0 / RATE_HZ
     n = int(round((s.duration + PREROLL_S) / dt))
-    z_rest = s.pw_bar - params.p_atm / 1e5  # 1 V ≙ 1 bar gauge (Eq 3.7)
+    z_rest = s.pw_bar - params.p_atm / BAR  # 1 V ≙ 1 bar gauge (Eq 3.7)
     rest = (z_rest, z_rest, 5.0, 5.0)
     x0 = pl.initial_state(params, 0.0, s.pw_bar, s.pw_bar)
     x0[pl.I_ZA], x0[pl.I_ZB], x0[pl.I_UA], x0[pl.I_UB] = rest
@@ -257,7 +258,7 @@ def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: 
             else:
                 s = sch[kind]
                 log, human, pw = run_schedule(params, s, sd), s.human, s.pw_bar
-            meta = {"rig": "rotary", "sample_rate_hz": RATE_HZ, "p_atm_bar": params.p_atm / 1e5,
+            meta = {"rig": "rotary", "sample_rate_hz": RATE_HZ, "p_atm_bar": params.p_atm / BAR,
                     "working_pressure_bar": pw, "experiment": kind, "human": human, "repetition": rep + 1,
                     "protocol": True}
             exps.append(_experiment(name, log, meta))

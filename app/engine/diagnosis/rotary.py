@@ -186,7 +186,7 @@ class RotaryPrep:
     torque_f: np.ndarray
     pa_f: np.ndarray
     pb_f: np.ndarray
-    raw: dict[str, np.ndarray]
+    torque_raw: np.ndarray
     omega_fr: np.ndarray
     ps0_bar: float
     noise: dict[str, float]
@@ -324,7 +324,7 @@ class RotaryFamily:
         inputs = {"z_a": cmds[:, 0], "z_b": cmds[:, 1], "u_a": cmds[:, 2], "u_b": cmds[:, 3], "omega": omega}
         return RotaryPrep(exp.name, dt, cmds, np.ascontiguousarray(ch["theta"]), np.ascontiguousarray(omega), acc,
                           {c: ch[c] for c in ("p_a", "p_b", "p_s")}, tq_f, pa_f, pb_f,
-                          {c: np.asarray(ch[c], dtype=float) for c in ("p_a", "p_b", "torque")}, omega_fr,
+                          np.asarray(ch["torque"], dtype=float), omega_fr,
                           ps0, noise, (b, a), regimes, inputs, still)
 
     def measured(self, prep: RotaryPrep) -> dict[str, np.ndarray]:
@@ -445,9 +445,12 @@ class RotaryFamily:
         ba = x["sensor_bias.p_a_bar"] if bias else 0.0
         bb = x["sensor_bias.p_b_bar"] if bias else 0.0
         bt = x["sensor_bias.torque_nm"] if bias else 0.0
+        def sensed(p_a: np.ndarray, p_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            # the pressures the sensors' gains and offsets say were there [bar abs]
+            return (p_a - ba) / ga, (p_b - bb) / gb
+
         # torque balance on the measured (sensor-corrected) pressures
-        pa = (prep.pa_f - ba) / ga
-        pb = (prep.pb_f - bb) / gb
+        pa, pb = sensed(prep.pa_f, prep.pb_f)
         tp = self.kernel.area_a * (pa - pb) * BAR
         j = self.nominal.vane.inertia + (x["inertia.extra"] if "inertia" in effects else 0.0)
         fr = pl.pack_friction(self.nominal.friction).copy()
@@ -457,8 +460,8 @@ class RotaryFamily:
         # what static friction holds is computed sample by sample from the raw signals (the vane
         # does not accelerate while stuck) and filtered once with the rest: filtering the
         # already filtered balance again smeared every stick/slip transition
-        tp_raw = self.kernel.area_a * ((prep.raw["p_a"] - ba) / ga - (prep.raw["p_b"] - bb) / gb) * BAR
-        need = (prep.raw["torque"] - bt) + tp_raw
+        pa_raw, pb_raw = sensed(prep.p_meas["p_a"], prep.p_meas["p_b"])
+        need = (prep.torque_raw - bt) + self.kernel.area_a * (pa_raw - pb_raw) * BAR
         lug = "presliding_friction" in effects
         tf = np.empty_like(need)
         friction_torque(prep.omega_fr, prep.stuck, need, np.minimum(pa, pb), fr, float(self.nominal.friction.shape_j),
