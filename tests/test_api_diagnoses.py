@@ -51,6 +51,7 @@ def test_the_protocol_table_is_served_from_the_engine(client: TestClient) -> Non
     assert [e["name"] for e in t["experiments"]] == list(VISIBLE)
     assert {x for e in t["experiments"] for x in e["makes_visible"]} == set(EFFECT_NAMES)
     assert all(e["description"] for e in t["experiments"]) and t["preroll_s"] == PREROLL_S
+    assert t["candidates"] == list(EFFECT_NAMES)  # the page's check boxes, in the library's order
 
 
 def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestClient) -> None:

@@ -291,6 +291,7 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     # the protocol table comes from the engine (GET /api/diagnoses/protocol), not a copy in the page
     expect(page.locator("#protocol")).to_contain_text("fill_shut")
     expect(page.locator("#protocol")).to_contain_text("heat transfer, external leakage, vane leakage")
+    expect(page.locator("#effects input")).to_have_count(9)  # one check box per candidate the engine names
     page.select_option("#src", "files")
     expect(page.locator("#logfiles")).to_be_visible()
     page.set_input_files("#logfiles", good[:1])

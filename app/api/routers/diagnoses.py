@@ -91,10 +91,12 @@ class ProtocolTable(BaseModel):
     Attributes:
         experiments: In the order the station runs them.
         preroll_s: Rest logged before each open-loop experiment's first step [s].
+        candidates: The candidate effects the diagnosis tries (and a simulated rig can have switched on).
     """
 
     experiments: list[ProtocolExperiment]
     preroll_s: float
+    candidates: list[EffectName]
 
 
 log = logging.getLogger(__name__)
@@ -104,11 +106,12 @@ log = logging.getLogger(__name__)
             summary="The diagnosis protocol: each experiment and the effects it makes visible")
 def protocol_table() -> ProtocolTable:
     from app.engine.diagnosis.protocol import DESCRIPTION, PREROLL_S, VISIBLE
+    from app.engine.params import EFFECT_NAMES
 
     # validated against EffectName: an engine table naming an unknown effect fails here, not in the page
-    return ProtocolTable(experiments=[ProtocolExperiment.model_validate({"name": k, "description": DESCRIPTION[k],
-                                                                         "makes_visible": v})
-                                      for k, v in VISIBLE.items()], preroll_s=PREROLL_S)
+    return ProtocolTable.model_validate({
+        "experiments": [{"name": k, "description": DESCRIPTION[k], "makes_visible": v} for k, v in VISIBLE.items()],
+        "preroll_s": PREROLL_S, "candidates": list(EFFECT_NAMES)})
 
 
 def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, sources: list[Path],
