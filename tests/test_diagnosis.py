@@ -190,6 +190,35 @@ class _Line:
         return {}
 
 
+class _Tone(_Line):
+    """y = sin(2π·f·t): a cost with a side lobe every 1/T in f, so a descent stays in the lobe it starts in."""
+
+    name = "tone"
+
+    def baseline(self) -> list[Param]:
+        return [Param("a", 1.2, 0.5, 2.0, "Hz")]  # nominal 1.2 Hz
+
+    def predict(self, p: Experiment, x: dict[str, float], effects: tuple[str, ...]) -> dict[str, np.ndarray]:
+        return {"y": np.sin(2.0 * np.pi * x["a"] * p.t)}
+
+
+class _GriddedTone(_Tone):
+    base_grid = (Param("a", 1.2, 1.2 / 1.25, 1.2 * 1.25, "Hz", log=True),)
+
+
+def test_a_base_grid_finds_the_lobe_a_descent_from_nominal_misses() -> None:
+    # a rig built 22 % off nominal (0.93 Hz for a nominal 1.2): from nominal the recalibration
+    # stays in nominal's lobe; the family's base grid (±25 %, refined once) starts it in the right one
+    rng = np.random.default_rng(2)
+    t = np.arange(0.0, 5.0, 0.01)
+    exps = [Experiment(f"tone{k}", t, {"x": t}, {"y": np.sin(2.0 * np.pi * 0.93 * t) + rng.normal(0.0, 0.01, t.size)},
+                       {}) for k in range(2)]
+    stuck = diagnose(_Tone(), exps[:1], exps[1:])["baseline"]["identifiability"]["params"]["a"]
+    found = diagnose(_GriddedTone(), exps[:1], exps[1:])["baseline"]["identifiability"]["params"]["a"]
+    assert abs(stuck - 0.93) > 0.05, stuck
+    assert found == pytest.approx(0.93, abs=0.002), found
+
+
 def test_samples_a_family_leaves_unscored_weigh_nothing() -> None:
     # a NaN measurement marks a sample the family does not score (the rotary torque channel's
     # filter transients): it must not enter the fit's residual sum, its SDs or the held-out counts

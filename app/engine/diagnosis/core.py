@@ -36,6 +36,8 @@ add (each at most three bounded parameters, named as in
 Optional family attributes (for expensive, piecewise-smooth models such as a
 replayed simulator): ``diff_step``, ``max_nfev`` and ``tol`` for the descent,
 ``grid_points`` for a coarse grid start over each candidate's parameters,
+``base_grid`` (a range per baseline parameter) for a grid start of the
+baseline's recalibration,
 ``frozen(effects)`` naming parameters the candidate being added cannot trade with
 (held at the reference fit), ``rebase(effects)`` naming baseline parameters
 whose reference values may stand in for the candidate being added (the grid
@@ -632,7 +634,12 @@ def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     floor = np.array([float(np.median([family.noise(p)[c] for p in held])) for c in family.channels])
     norm = _Norm(spread, floor)
 
-    base = fit(family, calib, (), scales=scales, stop=stop)
+    # a rough cost surface stalls the descent near its start: a family may name baseline
+    # parameters to search on a grid first (the others at their nominal values)
+    nominal = {s.name: s.x0 for s in family.baseline()}
+    base_grid = list(getattr(family, "base_grid", ()))
+    base_starts = [_grid_start(family, calib, (), nominal, base_grid, 3, scales)] if base_grid else [nominal]
+    base = fit(family, calib, (), scales=scales, starts=base_starts, stop=stop)
     base_sc = score(family, held, base, blocks)
     e_base, nr_base = _e(base_sc, norm)
     e_floor = float((floor / spread).mean())
