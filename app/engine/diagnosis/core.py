@@ -34,7 +34,8 @@ add (each at most three bounded parameters, named as in
    the gap left unexplained.
 
 Optional family attributes (for expensive, piecewise-smooth models such as a
-replayed simulator): ``diff_step``, ``max_nfev`` and ``tol`` for the descent,
+replayed simulator): ``diff_step``, ``max_nfev`` and ``tol`` (its ``ftol`` and
+``xtol``: a rippled cost gains nothing from steps finer than its ripple) for the descent,
 ``grid_points`` for a coarse grid start over each candidate's parameters,
 ``base_grid`` (a range per baseline parameter) for a grid start of the
 baseline's recalibration,
@@ -42,10 +43,9 @@ baseline's recalibration,
 (held at the reference fit), ``rebase(effects)`` naming baseline parameters
 whose reference values may stand in for the candidate being added (the grid
 and a second descent start them from their nominal values; the fit with the
-lower calibration cost is kept), ``tol`` the descent's ``ftol`` and ``xtol``
-(a rippled cost surface gains nothing from steps finer than its ripple),
-``prefetch(preps, params_list, effects)`` to compute predictions for many
-parameter sets at once (e.g. on all cores), and ``shared_scale``: groups of channels of one quantity normalised by one
+lower calibration cost is kept), ``prefetch(preps, params_list, effects)`` to
+compute predictions for many parameter sets at once (e.g. on all cores), and
+``shared_scale``: groups of channels of one quantity normalised by one
 scale, the largest of their SDs (a regulated supply's own SD is its noise:
 normalised by it, its NRMSE is ≈ 1 whatever the model, and the ±1–2 %
 error of any noise estimate would outweigh every other channel's gap).

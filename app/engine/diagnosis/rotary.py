@@ -221,10 +221,10 @@ class RotaryFamily:
 
     diff_step: float = 1e-2  # see core.fit: the replay is piecewise smooth
     max_nfev: int = 30
-    # the replay's cost ripples by ~2 % over 10 % parameter moves (the PRV regulators' rest band
-    # puts each chamber's held level anywhere within 0.01–0.03 bar of its set point, depending on
-    # the history): a step that gains less than 1e-4 of the cost is ripple, not descent. Measured
-    # on the withheld suite: the same gap closures (±0.01) in half the time of 1e-8
+    # the replay's cost ripples by ≈ 2 % over 10 % parameter moves (measured along the dead-volume
+    # scale; the PRV regulators' hysteresis makes where a chamber rests depend on its history): a
+    # step that gains less than 1e-4 of the cost is ripple, not descent. On four withheld-effect
+    # cases: the same gap closures (±0.01) as with 1e-8, in 51–64 % of the time
     tol: float = 1e-4
     grid_points: int = 9  # see core._grid_start
     # the recalibration's own grid start (3 levels each, refined once; see core._grid_start): a
@@ -458,7 +458,7 @@ class RotaryFamily:
         absorb what they can of it: on a rig with a slow heat exchange
         (h·A = 0.05 W/K) the baseline put the dead volumes at 0.72 × nominal
         for a true 1.19 ×, and the fit of heat_transfer from there ended at
-        h·A = 0.9 W/K with twice the calibration cost of the truth (from the
+        h·A = 0.9 W/K at 2.7 × the calibration cost of the truth (from the
         nominal values: 0.055 W/K). See the core's optional family attributes.
         """
         return set(_PNEUMATIC_BASE) if effects and effects[-1] in _PNEUMATIC_EFFECTS else set()
@@ -510,6 +510,7 @@ class RotaryFamily:
                         lug, s0, s1, prep.dt, tf)
         tf = filtfilt(*prep.ba, tf)
         torque = j * prep.acc - tp + tf + bt
+        torque.setflags(write=False)  # shared by every caller that asks with these parameters
         prep.torque_cache[key] = torque
         if len(prep.torque_cache) > 64:
             prep.torque_cache.popitem(last=False)
