@@ -222,9 +222,10 @@ def test_fill_shut_shows_the_gas_cooling_that_a_dead_volume_cannot_mimic() -> No
 @pytest.mark.slow
 def test_withheld_heat_transfer_heads_the_ranking() -> None:
     """With fill_shut in the protocol the smaller heat-exchange magnitude (h·A = 0.3 W/K) ranks
-    first (it was sixth without it: the dead volume absorbed it); it is not significant yet
-    (README: held-out GC 0.52 against the true model's 0.69)."""
-    r = run_case("heat_transfer", 0, seed=100)
+    first (it was sixth without it: the dead volume absorbed it). On the full protocol it is not
+    significant yet (README: held-out GC 0.52 against the true model's 0.69); the half-length
+    protocol used here (for CI time) gave rank 1 and GC 0.56."""
+    r = run_case("heat_transfer", 0, seed=100, scale=0.5)
     assert r["rank"] == 1, [x["effect"] for x in r["report"]["ranking"]]
     assert r["gap_closure"] > 0.2
 
