@@ -153,7 +153,11 @@ def test_clients_vanishing_mid_run_leave_the_run_and_its_log_intact(tmp_path: Pa
     series = srv.api("GET", f"/api/runs/{run_id}/series")
     t = [r[series["columns"].index("t")] for r in series["rows"]]
     steps = [b - a for a, b in itertools.pairwise(t)]
-    # every period the loop ran is logged, none twice; a gap is only where the loop itself ran late
-    # and skipped a period (an overrun it counted), never a row lost to a vanished client
-    gaps = sum(step > 1.5 / 200 for step in steps)
-    assert len(t) > 200 and min(steps) > 0.5 / 200 and gaps <= overruns, (gaps, overruns, max(steps))
+    # every period the loop ran is logged, none twice; a period is missing only where the loop
+    # itself skipped it (an overrun it counted), never a row lost to a vanished client. Counted
+    # over the run's span, not from single steps: t is when each period started, so under CI
+    # load a period started 4.5 ms late looks like a 9.5 ms gap and a 0.5 ms step after it (seen
+    # once in CI: five 10 ms steps and a 0.5 ms one, one overrun counted); ±1 for the jitter of
+    # the first and last period
+    missing = round((t[-1] - t[0]) * 200) + 1 - len(t)
+    assert len(t) > 200 and min(steps) > 0.0 and missing <= overruns + 1, (missing, overruns, min(steps), max(steps))
