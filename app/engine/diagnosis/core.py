@@ -290,6 +290,17 @@ def _weighted(r: np.ndarray, meas: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(meas), np.where(np.isfinite(r), r, 1e3), 0.0)
 
 
+def _residuals(family: Family, preps: list[Any], meas: list[dict[str, np.ndarray]], x: dict[str, float],
+               effects: tuple[str, ...], scales: dict[str, float]) -> np.ndarray:
+    """The scaled, weighted residuals of ``x`` on ``preps``, all channels, as one vector (see :func:`_weighted`)."""
+    parts = []
+    for p, m in zip(preps, meas, strict=True):
+        pr = family.predict(p, x, effects)
+        for c in family.channels:
+            parts.append(_weighted((pr[c] - m[c]) / scales[c], m[c]))
+    return np.concatenate(parts)
+
+
 def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: dict[str, float] | None = None,
         scales: dict[str, float] | None = None, starts: list[dict[str, float]] | None = None,
         stop: threading.Event | None = None) -> Fit:
@@ -315,13 +326,7 @@ def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: 
         v = fixed | _from_x(specs, x)
         if prefetch is not None:
             prefetch(preps, [v], effects)
-        parts = []
-        for p, m in zip(preps, meas, strict=True):
-            pr = family.predict(p, v, effects)
-            for c in family.channels:
-                r = (pr[c] - m[c]) / scales[c]
-                parts.append(_weighted(r, m[c]))
-        return np.concatenate(parts)
+        return _residuals(family, preps, meas, v, effects, scales)
 
     lo, hi = _bounds(specs)
     # a replayed simulator with switching (valve hysteresis, stiction) is piecewise smooth:
@@ -563,12 +568,8 @@ def _grid_start(family: Family, preps: list[Any], effects: tuple[str, ...], ref:
             prefetch(preps, cands, effects)
         best, best_cost = cands[0], math.inf
         for v in cands:
-            cost = 0.0
-            for p, m in zip(preps, meas, strict=True):
-                pr = family.predict(p, v, effects)
-                for c in family.channels:
-                    r = (pr[c] - m[c]) / scales[c]
-                    cost += float(np.sum(_weighted(r, m[c]) ** 2))
+            r = _residuals(family, preps, meas, v, effects, scales)
+            cost = float(r @ r)
             if cost < best_cost:
                 best, best_cost = v, cost
         return best, best_cost

@@ -64,6 +64,24 @@ _PNEUMATIC_EFFECTS = ("vane_leakage", "external_leakage", "heat_transfer", "tube
                       "valve_dynamics")
 
 
+REPLAY_CACHE = 128  # replayed pressure sets kept per log (a descent revisits its recent points)
+TORQUE_CACHE = 64  # torque-balance predictions kept per log
+
+
+def _lru_get(cache: OrderedDict[tuple[Any, ...], np.ndarray], key: tuple[Any, ...]) -> np.ndarray | None:
+    hit = cache.get(key)
+    if hit is not None:
+        cache.move_to_end(key)
+    return hit
+
+
+def _lru_put(cache: OrderedDict[tuple[Any, ...], np.ndarray], key: tuple[Any, ...], value: np.ndarray,
+             size: int) -> None:
+    cache[key] = value
+    if len(cache) > size:
+        cache.popitem(last=False)
+
+
 def _stuck(theta: np.ndarray, w: int) -> np.ndarray:
     """Samples around which the encoder did not move by a count for ±``w`` samples.
 
@@ -408,19 +426,13 @@ class RotaryFamily:
         replay_pneumatics(k, prep.cmds, prep.theta, prep.omega, x0, n_sub, out)
         return out
 
-    def _store(self, prep: RotaryPrep, key: tuple[Any, ...], out: np.ndarray) -> None:
-        prep.cache[key] = out
-        if len(prep.cache) > 128:
-            prep.cache.popitem(last=False)
-
     def _pressures(self, prep: RotaryPrep, x: dict[str, float], effects: tuple[str, ...]) -> np.ndarray:
         key = self._key(x, effects)
-        hit = prep.cache.get(key)
+        hit = _lru_get(prep.cache, key)
         if hit is not None:
-            prep.cache.move_to_end(key)
             return hit
         out = self._replay(prep, x, effects)
-        self._store(prep, key, out)
+        _lru_put(prep.cache, key, out, REPLAY_CACHE)
         return out
 
     def prefetch(self, preps: list[RotaryPrep], xs: list[dict[str, float]], effects: tuple[str, ...]) -> None:
@@ -430,7 +442,7 @@ class RotaryFamily:
             return
         outs = list(_pool().map(lambda j: self._replay(j[0], j[1], effects), jobs))
         for (p, x), o in zip(jobs, outs, strict=True):
-            self._store(p, self._key(x, effects), o)
+            _lru_put(p.cache, self._key(x, effects), o, REPLAY_CACHE)
 
     def frozen(self, effects: tuple[str, ...]) -> set[str]:
         """Parameters a candidate fit keeps at the reference's values (the last of ``effects`` is the one added).
@@ -485,9 +497,8 @@ class RotaryFamily:
         lug = "presliding_friction" in effects
         s0, s1 = x.get("presliding_friction.sigma0", 1.0), x.get("presliding_friction.sigma1", 0.0)
         key = (lug, *(round(v, 12) for v in (ga, gb, ba, bb, bt, j, fs, vs, s0, s1)))
-        hit = prep.torque_cache.get(key)
+        hit = _lru_get(prep.torque_cache, key)
         if hit is not None:
-            prep.torque_cache.move_to_end(key)
             return hit
 
         def sensed(p_a: np.ndarray, p_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -511,7 +522,5 @@ class RotaryFamily:
         tf = filtfilt(*prep.ba, tf)
         torque = j * prep.acc - tp + tf + bt
         torque.setflags(write=False)  # shared by every caller that asks with these parameters
-        prep.torque_cache[key] = torque
-        if len(prep.torque_cache) > 64:
-            prep.torque_cache.popitem(last=False)
+        _lru_put(prep.torque_cache, key, torque, TORQUE_CACHE)
         return torque
