@@ -159,9 +159,11 @@ with sync_playwright() as p:
     pages = []
     for k, kind in enumerate(kinds):  # one by one: a viser page that loads beside others may stall
         page = browser.new_context(viewport={"width": 1200, "height": 800}).new_page()
-        page.goto(base if kind == "dash" else viser)
-        # later pages load beside busy ones
-        page.wait_for_selector("canvas", state="attached", timeout=60000 + 15000 * k)
+        # later pages load beside busy ones (playwright's default 30 s for the load event was
+        # exceeded by a dashboard opened after a dozen pages at 500 Hz)
+        wait = 60000 + 15000 * k
+        page.goto(base if kind == "dash" else viser, timeout=wait)
+        page.wait_for_selector("canvas", state="attached", timeout=wait)
         pages.append(page)
     print("ready", flush=True)
     sys.stdin.readline()  # watch until told to stop

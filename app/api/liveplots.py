@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from app.engine.metrics import METRICS
 from app.engine.station import LIVE_COLUMNS, Station
 
 PUBLISH_HZ = 25.0  # issue 5: 20–30 Hz
@@ -68,7 +69,12 @@ class LivePlots:
         self.h_err = gui.add_uplot(data=z, series=({"label": "t [s]"}, _series("error [% of target]", "#8c564b")),
                                    title="Tracking error", aspect=2.5, scales=XSCALE)
         self.h_metrics = gui.add_markdown("No finished run yet.")
-        self.h_radar: Any = None
+        # drawn once now, hidden until a run has metrics: matplotlib, its fonts and viser's image
+        # encoder load here, before the station freezes its heap, not on the publisher thread
+        # beside a running loop after the first run (70 000 objects every full collection then
+        # scanned, ≈ 50 ms with the lock held)
+        self.h_radar = gui.add_image(radar_image({"pid": dict.fromkeys(METRICS, 1.0)}),
+                                     label="Metrics radar (latest run per controller)", visible=False)
         scene = self.server.scene
         scene.add_frame("/rig", show_axes=False)
         scene.add_box("/rig/base", color=(120, 120, 130), dimensions=(0.12, 0.12, 0.06), position=(0.0, 0.0, -0.05))
@@ -136,11 +142,8 @@ class LivePlots:
         self.h_metrics.content = f"{head}\n\n| metric | value |\n|---|---|\n{rows}"
         values = self._latest_per_controller(last.get("run_id"))
         if values:
-            img = radar_image(values)
-            if self.h_radar is None:
-                self.h_radar = self.server.gui.add_image(img, label="Metrics radar (latest run per controller)")
-            else:
-                self.h_radar.image = img
+            self.h_radar.image = radar_image(values)
+            self.h_radar.visible = True
 
     def _latest_per_controller(self, run_id: Any) -> dict[str, dict[str, float]]:
         if self.store is None or run_id is None:

@@ -45,13 +45,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.jobs = jobs = Jobs()
         plots = None
         if settings.start_engine:
-            if settings.auto_connect:
-                station.connect()
+            # the live plots first: what viser and the radar charts import and build is then in
+            # the heap that connect collects and freezes before the loop runs (Station.connect)
             if settings.viser_port:
                 from app.api.liveplots import LivePlots
 
                 plots = LivePlots(station, settings.host, settings.viser_port, store)
                 plots.start()
+            if settings.auto_connect:
+                station.connect()
         app.state.plots = plots
         try:
             yield

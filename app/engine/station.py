@@ -38,7 +38,7 @@ from app.engine.control.interaction import InteractionController
 from app.engine.hardware.base import RIG_KINDS, SAFE_COMMAND, Command, HardwareInterface, Measurement
 from app.engine.hardware.config import HardwareConfig, save_config
 from app.engine.hardware.factory import make_factory
-from app.engine.loop import Controller, Engine, WallClock
+from app.engine.loop import Controller, Engine, WallClock, settle_heap
 from app.engine.params import ParameterError, PlantParams, SensorParams, check_range
 from app.engine.runlog import RunLogWriter
 from app.engine.safety import SafetyLimits, SafetySupervisor
@@ -379,6 +379,8 @@ class Station:
         self.fault_message = ""
         self._watch: threading.Thread | None = None
         self._watch_stop = threading.Event()
+        self.heap_frozen = 0  # objects exempted from collection at the last connect (see settle_heap)
+        self.heap_settle_ms = 0.0  # how long that collection took [ms]
 
     # ------------------------------------------------------------------ state
 
@@ -448,6 +450,8 @@ class Station:
                 compile_onset_model()
             self.backend = backend
             self.live.clear()
+            # before the loop runs: the collector's one long pause happens here, not in a period
+            self.heap_frozen, self.heap_settle_ms = settle_heap()
             self._start_engine(self.rate_hz)
             self._state = State.IDLE
             self._watch_stop.clear()
