@@ -178,12 +178,13 @@ def test_linear_rig_extends_under_pressure_difference() -> None:
     assert 0.0 <= x[pl.I_POS] <= 0.300
 
 
-def test_connect_settles_the_heap_before_the_loop_runs(tmp_path) -> None:
+def test_connect_settles_the_heap_before_the_loop_runs(tmp_path, monkeypatch) -> None:
     """A collection of the oldest generation holds the interpreter lock while it scans every
     object (≈ 280 000 in a served station; 290–400 ms here): connect collects and freezes the
     survivors before the loop starts, so a later full collection only visits what was allocated
     since, and what it froze and later died is reclaimed at the next connect."""
     import gc
+    import time
     import weakref
 
     from app.engine.station import Station
@@ -194,9 +195,17 @@ def test_connect_settles_the_heap_before_the_loop_runs(tmp_path) -> None:
     cyc = Node()
     cyc.me = cyc  # reclaimable by the cycle collector only
     ref = weakref.ref(cyc)
+    monkeypatch.setattr("app.engine.station.REFREEZE_S", 0.1)
     st = Station(data_dir=tmp_path)
     try:
         st.connect()
+        late = Node()  # allocated beside the running loop: frozen by the watcher's next refreeze
+        frozen = gc.get_freeze_count()
+        deadline = time.monotonic() + 10.0
+        while st.heap_refreeze_ms == 0.0 or gc.get_freeze_count() <= frozen:
+            assert time.monotonic() < deadline, "the watcher never refroze the heap"
+            time.sleep(0.05)
+        assert all(o is not late for o in gc.get_objects())  # frozen: outside every generation
         assert st.heap_frozen > 10_000 and gc.get_freeze_count() > 0.9 * st.heap_frozen
         assert len(gc.get_objects()) < 0.2 * st.heap_frozen  # what a full collection now scans
         del cyc

@@ -38,7 +38,7 @@ from app.engine.control.interaction import InteractionController
 from app.engine.hardware.base import RIG_KINDS, SAFE_COMMAND, Command, HardwareInterface, Measurement
 from app.engine.hardware.config import HardwareConfig, save_config
 from app.engine.hardware.factory import make_factory
-from app.engine.loop import Controller, Engine, WallClock, settle_heap
+from app.engine.loop import REFREEZE_S, Controller, Engine, WallClock, refreeze_heap, settle_heap
 from app.engine.params import ParameterError, PlantParams, SensorParams, check_range
 from app.engine.runlog import RunLogWriter
 from app.engine.safety import SafetyLimits, SafetySupervisor
@@ -381,6 +381,7 @@ class Station:
         self._watch_stop = threading.Event()
         self.heap_frozen = 0  # objects exempted from collection at the last connect (see settle_heap)
         self.heap_settle_ms = 0.0  # how long that collection took [ms]
+        self.heap_refreeze_ms = 0.0  # how long the watcher's last refreeze took [ms] (see refreeze_heap)
 
     # ------------------------------------------------------------------ state
 
@@ -739,7 +740,11 @@ class Station:
     def _watcher(self) -> None:
         """Finishes work that ended by itself (off the engine thread)."""
         fault_seen: float | None = None
+        frozen_at = time.monotonic()
         while not self._watch_stop.wait(0.05):
+            if time.monotonic() - frozen_at >= REFREEZE_S:
+                self.heap_refreeze_ms = refreeze_heap()
+                frozen_at = time.monotonic()
             with self._lock:
                 if self.state == State.FAULT:
                     fault_seen = fault_seen or time.monotonic()
