@@ -8,6 +8,7 @@ jitter and overruns.
 
 from __future__ import annotations
 
+import gc
 import math
 import threading
 import time
@@ -187,7 +188,7 @@ def make_server_realtime(priority: int = SERVER_RT_PRIORITY) -> str:
     return set_scheduling("SCHED_RR", priority)
 
 
-def settle_heap() -> tuple[int, float]:
+def settle_heap() -> int:
     """Collect every generation, then exempt what survives from later collections (:func:`gc.freeze`).
 
     Call it before a paced loop starts, never while one runs. A collection of
@@ -201,15 +202,11 @@ def settle_heap() -> tuple[int, float]:
     is returned to the collector by the next call, which unfreezes first.
 
     Returns:
-        (objects frozen, milliseconds the collection took).
+        How many objects are frozen.
     """
-    import gc
-
-    t0 = time.perf_counter()
     gc.unfreeze()
-    gc.collect()
-    gc.freeze()
-    return gc.get_freeze_count(), (time.perf_counter() - t0) * 1e3
+    refreeze_heap()
+    return gc.get_freeze_count()
 
 
 def refreeze_heap() -> float:
@@ -227,8 +224,6 @@ def refreeze_heap() -> float:
     Returns:
         How long it took [ms].
     """
-    import gc
-
     t0 = time.perf_counter()
     gc.collect()
     gc.freeze()

@@ -380,7 +380,6 @@ class Station:
         self._watch: threading.Thread | None = None
         self._watch_stop = threading.Event()
         self.heap_frozen = 0  # objects exempted from collection at the last connect (see settle_heap)
-        self.heap_settle_ms = 0.0  # how long that collection took [ms]
         self.heap_refreeze_ms = 0.0  # how long the watcher's last refreeze took [ms] (see refreeze_heap)
 
     # ------------------------------------------------------------------ state
@@ -452,7 +451,7 @@ class Station:
             self.backend = backend
             self.live.clear()
             # before the loop runs: the collector's one long pause happens here, not in a period
-            self.heap_frozen, self.heap_settle_ms = settle_heap()
+            self.heap_frozen = settle_heap()
             self._start_engine(self.rate_hz)
             self._state = State.IDLE
             self._watch_stop.clear()
