@@ -208,6 +208,40 @@ print(json.dumps({"requests": len(lat), "errors": errors[0], "latency_p50_ms": q
 """
 
 
+_PACER = """
+import json, sys
+from app.engine.loop import WallClock, make_realtime
+rate, seconds = float(sys.argv[1]), float(sys.argv[2])
+note = make_realtime()
+clock, period, late = WallClock(), 1.0 / rate, []
+print("ready", flush=True)
+sys.stdin.readline()
+t = clock.now()
+end = t + seconds
+while t < end:
+    t += period
+    clock.sleep_until(t)
+    d = clock.now() - t
+    late.append(d)
+    if d > period:  # skip missed periods, as the engine does
+        t += int(d / period) * period
+late.sort()
+q = lambda f: 1e3 * late[min(len(late) - 1, int(f * len(late)))]
+print(json.dumps({"jitter_p50_ms": q(0.5), "jitter_p99_ms": q(0.99), "jitter_max_ms": 1e3 * late[-1],
+                  "overruns": sum(d > period for d in late), "periods": len(late), "realtime": not note}), flush=True)
+"""
+
+
+def _steal_jiffies() -> int:
+    """Time the hypervisor ran something else on this VM's CPUs (Linux ``/proc/stat``, all CPUs) [jiffies]."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) if fields[0] == "cpu" and len(fields) > 8 else 0
+    except OSError:
+        return 0
+
+
 def _normal_scheduling() -> None:
     from app.engine.loop import set_scheduling
 
@@ -243,9 +277,13 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
 
     Returns:
         ``{"quiet": health, "watched": health, "clients": n, "p99_ratio": …}``, where each
-        health holds the jitter [ms] and the overruns counted during that phase.
+        health holds the jitter [ms] and the overruns counted during that phase,
+        ``machine_floor``: the same figures of a bare pacing process run beside
+        the engine over the same seconds (what the machine allows any program),
+        and ``steal_pct``: the share of CPU time the hypervisor took [%].
     """
     import json
+    import os
     import socket
     import subprocess
     import sys
@@ -314,11 +352,24 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
         call("POST", "/api/engine/start", {"scenario": "SC-1", "controller": "pid", "target_nm": 1.2})
         time.sleep(1.0)
         engine = app.state.station.engine
+        # the machine's own floor, measured beside the engine: a process that only sleeps and
+        # wakes on the same grid at the same priority (on a shared VM it misses periods too)
+        pacer = subprocess.Popen([sys.executable, "-c", _PACER, str(rate_hz), str(seconds)],
+                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        assert pacer.stdin is not None and pacer.stdout is not None
+        if pacer.stdout.readline().strip() != "ready":
+            raise RuntimeError("the pacing probe did not start")
         before = engine.overruns
         engine.reset_window()
         pauses.clear()
+        steal0, t0 = _steal_jiffies(), time.monotonic()
+        pacer.stdin.write("go\n")
+        pacer.stdin.flush()
         time.sleep(seconds)
         h = call("GET", "/api/health")
+        steal = (_steal_jiffies() - steal0) / os.sysconf("SC_CLK_TCK") / (time.monotonic() - t0) / (os.cpu_count() or 1)
+        floor = json.loads(pacer.stdout.readline())
+        pacer.wait(10)
         gcs = gc_stats()
         if call("GET", "/api/engine")["state"] == "running":  # a fault (the watchdog, say) already ended it
             call("POST", "/api/engine/stop")
@@ -327,9 +378,8 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
         return {k: h[k] for k in ("jitter_p50_ms", "jitter_p99_ms", "jitter_max_ms", "measured_rate_hz",
                                   "realtime")} | {"overruns": h["overruns"] - before, "state_after": st["state"],
                                                   "fault": fault["message"] if fault else None,
-                                                  "fault_before": fault_before} | gcs
-
-    import os
+                                                  "fault_before": fault_before} | gcs | {
+            "machine_floor": floor, "steal_pct": 100.0 * steal}
 
     # this thread plays a REST client inside the server's process; holding the lock at normal
     # priority it could be the very inversion the server threads avoid, so it ranks with them

@@ -314,6 +314,14 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
         for h in (plots.h_torque, plots.h_press, plots.h_speed, plots.h_err):
             assert all(np.all(np.isfinite(np.asarray(a))) for a in h.data), h
         assert np.asarray(plots.h_torque.data[2])[-1] == 1.2 and np.asarray(plots.h_press.data[2])[0] == 2.9
+        # no new sample, nothing sent: an idle station costs the viewers nothing
+        sent = []
+        plots.server._websock_server.queue_message = sent.append  # type: ignore[method-assign]
+        plots.publish()
+        assert sent == []
+        st.live.append((400 * 0.005, 4.0, 1.2, 2.9, 3.1, 3.0, 3.0, 0.1, 0.2))  # same angle: charts only
+        plots.publish()
+        assert len(sent) == 4
     finally:
         plots.stop()
 

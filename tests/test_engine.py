@@ -217,3 +217,27 @@ def test_connect_settles_the_heap_before_the_loop_runs(tmp_path, monkeypatch) ->
     finally:
         st.close()
         gc.unfreeze()
+
+
+def test_live_window_is_thinned_on_a_fixed_grid_and_ends_at_the_newest_row() -> None:
+    from app.engine.station import LiveBuffer
+
+    buf = LiveBuffer(seconds=4.0, rate_hz=500.0)  # 2000 rows: the ring wraps below
+    assert buf.window(10.0, 400)[1].shape == (0, 9)
+    dt = 0.002
+    for k in range(3001):
+        buf.append((k * dt,) + (float(k),) * 8)
+    written, rows = buf.window(1.0, 100)
+    assert written == 3001
+    idx = rows[:, 1].astype(int)
+    # 1 s at 500 Hz is 501 rows (both ends inclusive): every 6th, counted from row 0, then the newest
+    assert idx[-1] == 3000 and rows[0, 0] >= 3000 * dt - 1.0 - 1e-12
+    assert len(rows) <= 101 and np.all(idx[:-1] % 6 == 0) and np.all(np.diff(idx[:-1]) == 6)
+    for k in range(3001, 3004):  # a later window keeps the same samples where they overlap
+        buf.append((k * dt,) + (float(k),) * 8)
+    later = buf.window(1.0, 100)[1][:, 1].astype(int)
+    assert set(later[:-1]) >= set(idx[2:-1])
+    whole = buf.window(100.0, 10_000)[1][:, 1].astype(int)  # longer than the ring: what it holds
+    assert whole[0] == 3004 - 2000 and np.all(np.diff(whole) == 1)
+    buf.clear()
+    assert buf.window(1.0, 10)[0] == 0

@@ -45,5 +45,8 @@ def test_the_engine_keeps_its_period_while_ten_browsers_watch_and_a_script_polls
         # a stalled loop (one that lost whole periods) shows here, however the jitter is spread
         assert 0.5 * 200.0 < h["measured_rate_hz"] < 1.5 * 200.0, h
         assert h["jitter_p50_ms"] <= h["jitter_p99_ms"] <= h["jitter_max_ms"], h
+        floor = h["machine_floor"]  # the bare pacing process beside the engine ran the whole phase
+        assert floor["periods"] > 0.5 * 200.0 * 8 and floor["jitter_p50_ms"] <= floor["jitter_p99_ms"], floor
+        assert 0.0 <= h["steal_pct"] <= 100.0, h
     if not r["watched"]["realtime"]:
         print(f"no real-time scheduling here: {make_realtime()}")

@@ -234,6 +234,39 @@ class LiveBuffer:
             rows = self._a[idx]  # fancy indexing copies
         return rows[rows[:, 0] > t]
 
+    def window(self, seconds: float, max_points: int) -> tuple[int, np.ndarray]:
+        """The last ``seconds`` [s] of rows, thinned to at most ``max_points`` + 1, oldest first.
+
+        Thinning keeps every k-th row counted from the first row ever written,
+        not from the window's start, so successive windows share their samples
+        and a live chart of a noisy signal does not shimmer as it scrolls; the
+        newest row is always included. Only the kept rows are copied under the
+        lock (the engine appends under it).
+
+        Returns:
+            ``(written, rows)``: rows written in total so far (unchanged means no
+            new sample) and the thinned rows.
+        """
+        with self._lock:
+            end = self._i
+            lo = max(0, end - self.n)
+            if end == 0:
+                return 0, np.zeros((0, len(LIVE_COLUMNS)))
+            t_from = self._a[(end - 1) % self.n, 0] - seconds
+            hi = end - 1
+            while lo < hi:  # first row inside the window; times rise since the last clear
+                mid = (lo + hi) // 2
+                if self._a[mid % self.n, 0] < t_from:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            step = max(1, -(-(end - lo) // max(int(max_points), 1)))
+            idx = np.arange(lo + (-lo) % step, end, step)
+            if idx.size == 0 or idx[-1] != end - 1:
+                idx = np.append(idx, end - 1)
+            rows = self._a[idx % self.n]
+        return end, rows
+
     def latest(self) -> np.ndarray | None:
         """The newest row, or None before the first."""
         with self._lock:
