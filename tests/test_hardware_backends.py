@@ -386,6 +386,10 @@ def test_the_backend_is_chosen_by_the_configuration_file_alone(tmp_path: Path) -
             pass
 
 
+# paced, with the plant's Modbus server in this interpreter at normal priority: a busy neighbour
+# (the other CI worker) starved it into five late periods in a row and the overrun fault latched
+# (2 of 6 runs beside two busy processes; once in CI) -- a harness artefact, a coupler is its own box
+@pytest.mark.serial
 def test_calibration_zeroes_the_torque_pressures_and_encoder_and_saves_them_with_the_date(tmp_path: Path) -> None:
     import datetime
 
@@ -412,6 +416,7 @@ def test_calibration_zeroes_the_torque_pressures_and_encoder_and_saves_them_with
         st.connect()
         time.sleep(3.0)  # the chambers vent to atmosphere at idle
         before = st.live.latest()
+        assert st.state.value == "idle", st.fault_message
         r = st.calibrate("torque_zero", seconds=0.5)
         assert r["after"]["torque_offset_nm"] == pytest.approx(0.0, abs=0.01)
         r = st.calibrate("pressure_offsets", seconds=0.5)

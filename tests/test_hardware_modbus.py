@@ -168,6 +168,8 @@ def test_samples_and_commands_cross_the_link_scaled_as_the_simulator_sees_them()
         server.stop()
 
 
+@pytest.mark.serial  # paced, plant and station in one interpreter: beside two busy processes the
+# overrun fault latched before the cut in 2 of 6 runs (a harness artefact; a coupler is its own box)
 def test_a_closed_link_mid_run_ends_in_the_safe_state_and_reconnecting_resumes(tmp_path: Path) -> None:
     factory = HILFactory()
     st = Station(factory, data_dir=tmp_path)
