@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import threading
 import time
 from typing import Any
 
@@ -167,8 +169,16 @@ with sync_playwright() as p:
         pages.append(page)
     print("ready", flush=True)
     sys.stdin.readline()  # watch until told to stop
-    drawn = sum(int(pg.evaluate("Number(document.getElementById('c-torque')?.dataset.samples || 0)") > 0)
-                for pg, kind in zip(pages, kinds) if kind == "dash")
+    drawn = 0
+    for pg, kind in zip(pages, kinds):
+        if kind != "dash":
+            continue
+        try:  # bounded: page.evaluate has no timeout, and a page whose script is busy never answers
+            pg.wait_for_function("Number(document.getElementById('c-torque')?.dataset.samples || 0) > 0",
+                                 timeout=20000)
+            drawn += 1
+        except Exception:
+            pass
     print(drawn, flush=True)
     browser.close()
 """
@@ -255,6 +265,18 @@ def _serve_thread_priority(settings: Any) -> None:
         make_server_realtime()
 
 
+def _readline(proc: subprocess.Popen[str], timeout_s: float, what: str) -> str:
+    """One line of ``proc``'s output, or :class:`RuntimeError` saying ``what`` after ``timeout_s`` [s]."""
+    assert proc.stdout is not None
+    out: list[str] = []
+    th = threading.Thread(target=lambda: out.append(proc.stdout.readline() if proc.stdout else ""), daemon=True)
+    th.start()
+    th.join(timeout_s)
+    if not out:
+        raise RuntimeError(f"{what} within {timeout_s:.0f} s")
+    return out[0]
+
+
 def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chromium", rate_hz: float = 200.0,
          rps: float = 0.0, viser_clients: int | None = None) -> dict[str, Any]:
     """Engine timing with no client, then with ``clients`` browser pages watching (see ``bench/load.py``).
@@ -284,6 +306,7 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
     """
     import json
     import os
+    import signal
     import socket
     import subprocess
     import sys
@@ -386,19 +409,21 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
     policy = os.sched_getscheduler(0) if hasattr(os, "sched_getscheduler") else None
     _serve_thread_priority(settings)
     n_viser = clients // 2 if viser_clients is None else viser_clients
+    proc: subprocess.Popen[str] | None = None
+    rest: subprocess.Popen[str] | None = None
     try:
         quiet = phase()
+        # own process groups, so that a hung client goes with its Chromium (see the finally)
         proc = subprocess.Popen([sys.executable, "-c", _CLIENTS, base, f"http://127.0.0.1:{vport}", str(clients),
                                  chromium, str(n_viser)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                preexec_fn=_normal_scheduling)  # browsers are ordinary programs
+                                preexec_fn=_normal_scheduling, start_new_session=True)  # ordinary programs
         assert proc.stdin is not None and proc.stdout is not None
         if proc.stdout.readline().strip() != "ready":
             raise RuntimeError("the browser clients did not start")
-        rest = None
         if rps > 0:
             rest = subprocess.Popen([sys.executable, "-c", _REQUESTS, "127.0.0.1", str(port), str(rps)],
                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                    preexec_fn=_normal_scheduling)
+                                    preexec_fn=_normal_scheduling, start_new_session=True)
             assert rest.stdin is not None and rest.stdout is not None
             if rest.stdout.readline().strip() != "ready":
                 raise RuntimeError("the REST client did not start")
@@ -412,10 +437,14 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
             rest.wait(30)
         proc.stdin.write("stop\n")
         proc.stdin.flush()
-        drawn = int(proc.stdout.readline().strip() or 0)
+        # a browser that stops answering ends the benchmark with that said, not in a silent hang
+        drawn = int(_readline(proc, 120.0, "the browser clients did not report").strip() or 0)
         proc.wait(60)
     finally:
         gc.callbacks.remove(on_gc)
+        for child in (proc, rest):
+            if child is not None and child.poll() is None:
+                os.killpg(child.pid, signal.SIGKILL)  # Chromium's processes with it
         server.should_exit = True
         th.join(30)
         if policy is not None:

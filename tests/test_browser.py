@@ -322,3 +322,71 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#runs tbody")).to_contain_text("Imported log isotonic-2")
     expect(page.locator("#runs tbody")).to_contain_text("Gap diagnosis")
     assert not errors, errors
+
+
+_SLOW_SERVER = """
+// every poll's answer arrives late (a loaded server); count the requests in flight per path
+window.__inflight = {}; window.__maxInflight = {};
+const fetch0 = window.fetch.bind(window);
+window.fetch = async (url, opts) => {
+  const path = String(url).split('?')[0];
+  if (path !== '/api/live' && path !== '/api/engine') return fetch0(url, opts);
+  window.__inflight[path] = (window.__inflight[path] || 0) + 1;
+  window.__maxInflight[path] = Math.max(window.__maxInflight[path] || 0, window.__inflight[path]);
+  try {
+    await new Promise(r => setTimeout(r, path === '/api/live' ? 350 : 1200));
+    return await fetch0(url, opts);
+  } finally { window.__inflight[path] -= 1; }
+};
+"""
+
+
+def test_a_slow_server_gets_one_poll_at_a_time_and_the_plot_holds_each_sample_once(
+        station: tuple[str, str], browser: object) -> None:
+    """A loaded server answers late: the dashboard must not pile up requests on it.
+
+    With ``setInterval`` a 100 ms poll answered in 350 ms had four requests in
+    flight; answers arrived out of order, the plot appended the same samples
+    twice, and a late empty answer reset it and refetched 3000 rows.
+    """
+    import itertools
+    import json
+    import urllib.request
+
+    from playwright.sync_api import Browser
+
+    assert isinstance(browser, Browser)
+    base, _viser = station
+
+    def call(method: str, path: str, body: dict[str, object] | None = None) -> dict[str, object]:
+        req = urllib.request.Request(base + path, method=method, data=json.dumps(body or {}).encode(),
+                                     headers={"Content-Type": "application/json"})
+        with urllib.request.urlopen(req, timeout=10) as r:
+            out: dict[str, object] = json.loads(r.read())
+            return out
+
+    state = call("GET", "/api/engine")["state"]
+    if state == "fault":
+        call("POST", "/api/engine/clear")
+        state = "disconnected"
+    if state == "disconnected":
+        call("POST", "/api/engine/connect")
+    page = browser.new_page(viewport={"width": 1200, "height": 800})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.add_init_script(_SLOW_SERVER)
+    page.goto(base)
+    call("POST", "/api/engine/start", {"scenario": "SC-1", "controller": "pid", "target_nm": 1.2})
+    try:
+        page.wait_for_function("Number(document.getElementById('c-torque').dataset.samples || 0) > 0",
+                               timeout=10000)
+        page.wait_for_timeout(4000)
+        most = page.evaluate("window.__maxInflight")
+        assert most == {"/api/live": 1, "/api/engine": 1}, most
+        t = page.evaluate("live.map(r => r[0])")
+        assert len(t) > 200 and all(b > a for a, b in itertools.pairwise(t)), t[:20]
+    finally:
+        if call("GET", "/api/engine")["state"] == "running":
+            call("POST", "/api/engine/stop")
+        page.close()
+    assert not errors, errors
