@@ -214,3 +214,26 @@ def test_controller_config_validation() -> None:
         ControllerConfig(controller="bang-bang")  # type: ignore[arg-type]
     with pytest.raises(ParameterError, match="Working pressure"):
         ControllerConfig(pw_bar=9.0)
+
+
+def test_the_intention_dwell_counts_the_time_its_samples_span_not_the_ticks() -> None:
+    # after a late period the engine's catch-up tick reads the rig again about 1 ms later; counted as
+    # two whole periods, one disturbance met the 10 ms dwell and the run reversed (pipeline notes)
+    from app.engine.control.interaction import InteractionController
+    from app.engine.hardware.base import Measurement
+
+    def modes(times: list[float], torques: list[float]) -> list[int]:
+        ctl = InteractionController(controller="pid")
+        out = []
+        for t, tq in zip(times, torques, strict=True):
+            ctl.step(Measurement(t, 3.0, 3.0, 6.0, 0.0, 0.0, tq), 0.005)
+            out.append(ctl.mode)
+        return out
+
+    ccw = [0.0, 0.005, 0.010]  # beyond +0.25 N·m on the 5 ms grid: CCW after two samples (10 ms)
+    late = modes([*ccw, 0.0217, 0.0227], [1.4, 1.4, 1.4, -0.45, -0.45])
+    assert late[1] == 1 and late[-1] == 1  # 11.7 ms late, then 1 ms: 5 + 1 ms of evidence, still CCW
+    longer = modes([*ccw, 0.0217, 0.0227, 0.025, 0.030], [1.4] * 3 + [-0.45] * 4)
+    assert longer[-2:] == [1, 2]  # it persists: CW once the samples span 10 ms (5 + 1 + 2.3 + 5)
+    grid = modes([*ccw, 0.015, 0.020], [1.4, 1.4, 1.4, -0.45, -0.45])
+    assert grid[-2:] == [1, 2]  # on the regular grid: two samples, as before

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import numpy as np
@@ -32,10 +33,12 @@ class InteractionController:
         self.state = np.zeros(cpl.NSTATE)
         self._meas = np.zeros(sn.NM)
         self._cmd = np.zeros(4)
+        self._t_prev = math.nan
 
     def reset(self) -> None:
         """Forget the detector and controller state."""
         self.state[:] = 0.0
+        self._t_prev = math.nan
 
     def reconfigure(self, **changes: Any) -> None:
         """Change controller, target, P_w or PDRA/TDRA during a run, bumplessly.
@@ -73,6 +76,10 @@ class InteractionController:
         m = self._meas
         m[sn.M_PA], m[sn.M_PB], m[sn.M_PS] = meas.p_a, meas.p_b, meas.p_s
         m[sn.M_POS], m[sn.M_VEL], m[sn.M_TQ] = meas.theta, meas.omega, meas.torque
+        # how much time this sample stands for: the detector's dwell counts it (see pipeline)
+        gap = meas.t - self._t_prev
+        self.state[cpl.S_SEEN] = gap if gap > 0.0 else 0.0  # NaN (first sample) compares False: 0
+        self._t_prev = meas.t
         cpl.control_step(m, self.state, self.cp, self.fr, self.fz, dt, self._cmd)
         c = self._cmd
         return Command(float(c[0]), float(c[1]), float(c[2]), float(c[3]))

@@ -12,7 +12,12 @@ Choices the thesis leaves open (written down here, as SPEC asks):
 * Intention detector: thresholds ±0.25 N·m (thesis 3.3.1) with hysteresis and
   dwell so sensor noise cannot make it flicker: a direction is entered after
   the torque stays beyond ±0.25 N·m for ``dwell_on`` (10 ms) and left after
-  it stays inside ±``release`` (0.10 N·m) for ``dwell_off`` (30 ms).
+  it stays inside ±``release`` (0.10 N·m) for ``dwell_off`` (30 ms). A
+  sample counts for the time since the previous one, at most one period
+  (``S_SEEN``): after a late period the engine's catch-up tick reads the
+  rig again a millisecond later, and counted as a whole period the two
+  samples met the 10 ms dwell on one disturbance (a paced SC-2 run over
+  Modbus then tracked the opposite direction to its end).
 * Sign unification: CW friction and the CW target enter Eq 3.23 as
   magnitudes (the estimator's ×−1 of thesis Fig 3.32 applied to the target
   too), so the controlled chamber's reference resists the user both ways.
@@ -107,6 +112,7 @@ S_TI = 10  # TDRA integral term [bar]
 S_TEP = 11  # TDRA previous torque error [N·m]
 S_TDF = 12  # TDRA filtered error rate [N·m/s]
 S_TMODE = 13  # mode the TDRA state belongs to
+S_SEEN = 14  # time between this measurement and the previous one [s] (0: not known, one period)
 S_SIDE = 16  # per-side PRV controller blocks at 16 (a) and 16 + S_SIDE_N (b)
 S_SIDE_N = 10
 # offsets inside a side block
@@ -207,7 +213,8 @@ def intention_update(tq: float, st: np.ndarray, cp: np.ndarray, dt: float) -> in
     if int(st[S_CAND]) != cand:
         st[S_CAND] = cand
         st[S_TIMER] = 0.0
-    st[S_TIMER] += dt
+    seen = st[S_SEEN]
+    st[S_TIMER] += seen if 0.0 < seen < 0.999 * dt else dt
     if st[S_TIMER] >= need - 1e-12:
         st[S_MODE] = cand
         st[S_TIMER] = 0.0
