@@ -304,6 +304,7 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
         the engine over the same seconds (what the machine allows any program),
         and ``steal_pct``: the share of CPU time the hypervisor took [%].
     """
+    import contextlib
     import json
     import os
     import signal
@@ -438,13 +439,16 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
         proc.stdin.write("stop\n")
         proc.stdin.flush()
         # a browser that stops answering ends the benchmark with that said, not in a silent hang
-        drawn = int(_readline(proc, 120.0, "the browser clients did not report").strip() or 0)
+        # (each dashboard that never drew costs the clients their 20 s wait for it)
+        drawn = int(_readline(proc, 30.0 + 25.0 * (clients - n_viser), "the browser clients did not report")
+                    .strip() or 0)
         proc.wait(60)
     finally:
         gc.callbacks.remove(on_gc)
         for child in (proc, rest):
             if child is not None and child.poll() is None:
-                os.killpg(child.pid, signal.SIGKILL)  # Chromium's processes with it
+                with contextlib.suppress(ProcessLookupError):  # it may end by itself meanwhile
+                    os.killpg(child.pid, signal.SIGKILL)  # Chromium's processes with it
         server.should_exit = True
         th.join(30)
         if policy is not None:
