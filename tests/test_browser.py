@@ -366,6 +366,12 @@ def test_a_slow_server_gets_one_poll_at_a_time_and_the_plot_holds_each_sample_on
             return out
 
     state = call("GET", "/api/engine")["state"]
+    if state in ("running", "identifying"):  # whatever an earlier test left going
+        call("POST", "/api/engine/stop")
+        deadline = time.monotonic() + 30
+        while (state := call("GET", "/api/engine")["state"]) not in ("idle", "fault"):
+            assert time.monotonic() < deadline, state
+            time.sleep(0.1)
     if state == "fault":
         call("POST", "/api/engine/clear")
         state = "disconnected"
