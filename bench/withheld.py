@@ -37,12 +37,11 @@ if __name__ == "__main__":
             results.append(run_case(None, seed=300 + k, structural=name))
             eff, mag = STRUCTURAL_PAIRS[name]
             results.append(run_case(eff, mag, seed=310 + k, structural=name))
-        print(json.dumps(summarise(results), indent=1))
-        raise SystemExit(0)
-    for seed in range(a.seeds):
-        for eff in a.effects:
-            for mag in (0, 1):
-                results.append(run_case(eff, mag, seed=a.seed0 + seed))
-    for seed in range(a.nulls):
-        results.append(run_case(None, seed=a.null_seed0 + seed))
+    else:
+        for seed in range(a.seeds):
+            for eff in a.effects:
+                for mag in (0, 1):
+                    results.append(run_case(eff, mag, seed=a.seed0 + seed))
+        for seed in range(a.nulls):
+            results.append(run_case(None, seed=a.null_seed0 + seed))
     print(json.dumps(summarise(results), indent=1))

@@ -20,6 +20,7 @@ least every 0.5 s of wall time) and reported to an optional
 
 from __future__ import annotations
 
+import bisect
 import enum
 import math
 import threading
@@ -253,13 +254,8 @@ class LiveBuffer:
             if end == 0:
                 return 0, np.zeros((0, len(LIVE_COLUMNS)))
             t_from = self._a[(end - 1) % self.n, 0] - seconds
-            hi = end - 1
-            while lo < hi:  # first row inside the window; times rise since the last clear
-                mid = (lo + hi) // 2
-                if self._a[mid % self.n, 0] < t_from:
-                    lo = mid + 1
-                else:
-                    hi = mid
+            # first row inside the window (times rise since the last clear; the newest is inside)
+            lo = bisect.bisect_left(range(lo, end), t_from, key=lambda i: self._a[i % self.n, 0]) + lo
             step = max(1, -(-(end - lo) // max(int(max_points), 1)))
             idx = np.arange(lo + (-lo) % step, end, step)
             if idx.size == 0 or idx[-1] != end - 1:
