@@ -381,19 +381,25 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
         pacer = subprocess.Popen([sys.executable, "-c", _PACER, str(rate_hz), str(seconds)],
                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         assert pacer.stdin is not None and pacer.stdout is not None
-        if pacer.stdout.readline().strip() != "ready":
-            raise RuntimeError("the pacing probe did not start")
-        before = engine.overruns
-        engine.reset_window()
-        pauses.clear()
-        steal0, t0 = _steal_jiffies(), time.monotonic()
-        pacer.stdin.write("go\n")
-        pacer.stdin.flush()
-        time.sleep(seconds)
-        h = call("GET", "/api/health")
-        steal = (_steal_jiffies() - steal0) / os.sysconf("SC_CLK_TCK") / (time.monotonic() - t0) / (os.cpu_count() or 1)
-        floor = json.loads(pacer.stdout.readline())
-        pacer.wait(10)
+        try:
+            if pacer.stdout.readline().strip() != "ready":
+                raise RuntimeError("the pacing probe did not start")
+            before = engine.overruns
+            engine.reset_window()
+            pauses.clear()
+            steal0, t0 = _steal_jiffies(), time.monotonic()
+            pacer.stdin.write("go\n")
+            pacer.stdin.flush()
+            time.sleep(seconds)
+            h = call("GET", "/api/health")
+            steal = (_steal_jiffies() - steal0) / os.sysconf("SC_CLK_TCK") / (time.monotonic() - t0) \
+                / (os.cpu_count() or 1)
+            floor = json.loads(pacer.stdout.readline())
+            pacer.wait(10)
+        finally:
+            if pacer.poll() is None:  # a phase that failed must not leave a real-time spinner behind
+                pacer.kill()
+                pacer.wait(10)
         gcs = gc_stats()
         if call("GET", "/api/engine")["state"] == "running":  # a fault (the watchdog, say) already ended it
             call("POST", "/api/engine/stop")

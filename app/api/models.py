@@ -22,6 +22,10 @@ class Health(BaseModel):
         jitter_max_ms: Largest start jitter [ms].
         realtime: Whether the loop thread runs at SCHED_FIFO priority.
         realtime_note: Why not, when it does not.
+        switch_interval_ms: The interpreter's switch interval [ms]: how long the woken loop
+            waits before it may ask another thread to hand over the interpreter lock.
+        heap_frozen: Objects exempted from garbage collection at the last connect.
+        heap_refreeze_ms: How long the last periodic collect-and-freeze took [ms].
     """
 
     state: str
@@ -35,6 +39,9 @@ class Health(BaseModel):
     jitter_max_ms: float
     realtime: bool = False
     realtime_note: str = ""
+    switch_interval_ms: float = 0.0
+    heap_frozen: int = 0
+    heap_refreeze_ms: float = 0.0
 
 
 class EngineStatus(BaseModel):
