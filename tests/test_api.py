@@ -49,6 +49,24 @@ def test_state_machine_refuses_illegal_actions_with_409_and_why(client: TestClie
     assert client.post("/api/engine/disconnect").json()["state"] == "disconnected"
 
 
+def test_live_data_outside_an_exercise_has_null_targets_and_float_samples(client: TestClient) -> None:
+    client.post("/api/engine/connect")
+    t0 = time.monotonic()
+    live = client.get("/api/live").json()
+    while len(live["rows"]) < 5 and time.monotonic() - t0 < 10.0:
+        time.sleep(0.05)
+        live = client.get("/api/live").json()
+    rows = live["rows"]
+    assert len(rows) >= 5 and live["t_last"] == rows[-1][0]
+    cols = live["columns"]
+    for row in rows:  # JSON has no NaN: no target and no references while idle are null
+        assert len(row) == len(cols)
+        assert [row[cols.index(c)] for c in ("target", "p_ref_a", "p_ref_b")] == [None, None, None], row
+        assert all(isinstance(row[cols.index(c)], float) for c in ("t", "torque", "p_a", "p_b", "omega", "theta"))
+    assert [r[0] for r in rows] == sorted(r[0] for r in rows)
+    assert client.get("/api/live", params={"since": rows[-1][0] + 1e6}).json()["rows"] == []
+
+
 def test_bad_input_gets_422_naming_the_field_and_changes_nothing(client: TestClient) -> None:
     client.post("/api/engine/connect")
     r = client.post("/api/engine/start", json={"target_nm": 9.0})

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
 from fastapi import APIRouter, Query
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ, THERAPIST
@@ -233,5 +234,12 @@ def calibrate(body: CalibrateRequest, station: StationDep) -> CalibrationResult:
 def live(station: StationDep, since: float = Query(-1.0, ge=-1.0, le=1e9, description="s"),
          max_rows: int = Query(2000, ge=1, le=15000)) -> LiveData:
     rows = station.live.since(since, max_rows)
-    out = [[None if not math.isfinite(v) else float(v) for v in r] for r in rows]
-    return LiveData(columns=list(LIVE_COLUMNS), rows=out, t_last=float(rows[-1, 0]) if len(rows) else since)
+    # NaN (no target outside an exercise) becomes null. Built from floats and None, the rows need no
+    # validation, which would hold the interpreter lock in pydantic's core while the engine waits for
+    # it (0.4 ms per 2000 rows, 5–8 ms at 15 000); with numpy doing the NaN test a 2000-row answer
+    # costs 1.5–1.7 ms, not 4.7–6.9 ms (measured here)
+    cells = rows.astype(object)
+    cells[~np.isfinite(rows)] = None
+    out = cells.tolist()
+    return LiveData.model_construct(columns=list(LIVE_COLUMNS), rows=out,
+                                    t_last=float(rows[-1, 0]) if len(rows) else since)
