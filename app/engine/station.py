@@ -729,7 +729,7 @@ class Station:
                                                   "rate_hz": self.rate_hz, "measured_rate_hz": 0.0,
                                                   "realtime": False}
         base["realtime_note"] = self.engine.realtime_note if self.engine is not None else "engine not running"
-        base |= {"switch_interval_ms": sys.getswitchinterval() * 1e3, "heap_frozen": self.heap_frozen,
+        base |= {"switch_interval_ms": round(sys.getswitchinterval() * 1e3, 6), "heap_frozen": self.heap_frozen,
                  "heap_refreeze_ms": self.heap_refreeze_ms}
         return {"state": self.state.value, "backend": self.backend.name if self.backend else "none", **base}
 
