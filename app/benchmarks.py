@@ -313,6 +313,7 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
     import sys
     import tempfile
     import threading
+    import urllib.error
     import urllib.request
 
     import uvicorn
@@ -402,7 +403,11 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
                 pacer.wait(10)
         gcs = gc_stats()
         if call("GET", "/api/engine")["state"] == "running":  # a fault (the watchdog, say) already ended it
-            call("POST", "/api/engine/stop")
+            try:
+                call("POST", "/api/engine/stop")
+            except urllib.error.HTTPError as exc:  # 409: the workout ended by itself since the GET
+                if exc.code != 409:
+                    raise
         st = call("GET", "/api/engine")
         fault = (st.get("safety") or {}).get("fault")
         return {k: h[k] for k in ("jitter_p50_ms", "jitter_p99_ms", "jitter_max_ms", "measured_rate_hz",
