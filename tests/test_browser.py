@@ -216,7 +216,8 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
 
     assert isinstance(browser, Browser)
     therapist = "therapist-browser-" + "0123456789"
-    settings = Settings(data_dir=str(tmp_path), port=free_port(), viser_port=0, auto_connect=False,
+    vport = free_port()
+    settings = Settings(data_dir=str(tmp_path), port=free_port(), viser_port=vport, auto_connect=False,
                         therapist_token=therapist, admin_token="admin-browser-" + "0123456789")  # type: ignore[arg-type]
     with live_server(settings) as base:
         page = browser.new_page(viewport={"width": 1400, "height": 1000}, accept_downloads=True)
@@ -233,6 +234,18 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
         expect(page.locator("#who")).to_have_text("signed in: therapist")
         expect(page.locator("#signin")).to_be_hidden()
         expect(page.locator("#state")).to_have_text("disconnected", timeout=10000)
+        # the live plots: a stranger's browser is refused, the signed-in one gets in by the link
+        stranger = browser.new_page()
+        stranger.goto(f"http://127.0.0.1:{vport}/")
+        expect(stranger.locator("h1")).to_have_text("Sign in first")
+        stranger.close()
+        with page.expect_popup() as popup:
+            page.click("#viser-link")
+        viser = popup.value
+        # the panel's charts come over viser's websocket, so they show only if it got through too
+        expect(viser.get_by_text("Interaction torque vs target")).to_be_visible(timeout=30000)
+        assert "ticket" not in viser.url
+        viser.close()
         page.click("[data-action=connect]")
         expect(page.locator("#state")).to_have_text("idle", timeout=60000)
         page.click("[data-action=start]")

@@ -6,6 +6,7 @@ import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from fastapi import FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
@@ -19,10 +20,14 @@ from app.api.jobs import Jobs
 from app.api.models import AuthInfo, ViserInfo
 from app.api.routers import diagnoses, engine, params, runs, sessions
 from app.api.settings import Settings
+from app.api.viser_gate import TICKET_S, Signer, ViserGate
 from app.engine.hardware.config import load_config
 from app.engine.params import ParameterError
 from app.engine.station import Station, TransitionError
 from app.storage import Store
+
+if TYPE_CHECKING:
+    from app.api.liveplots import LivePlots
 
 STATIC = Path(__file__).resolve().parent.parent / "static"
 
@@ -43,21 +48,34 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                           hardware=hardware, hardware_path=settings.hardware or None)
         app.state.store, app.state.station = store, station
         app.state.jobs = jobs = Jobs()
-        plots = None
+        plots: LivePlots | None = None
+        gate: ViserGate | None = None
         if settings.start_engine:
             # the live plots first: what viser and the radar charts import and build is then in
             # the heap that connect collects and freezes before the loop runs (Station.connect)
             if settings.viser_port:
                 from app.api.liveplots import LivePlots
 
-                plots = LivePlots(station, settings.host, settings.viser_port, store)
+                if settings.auth_enabled:
+                    # viser has no sign-in: it listens on loopback and the gate holds the public port
+                    plots = LivePlots(station, "127.0.0.1", 0, store)
+                    gate = ViserGate(settings.host, settings.viser_port, plots.server.get_port(), Signer())
+                    try:
+                        gate.start()
+                    except BaseException:
+                        plots.stop()
+                        raise
+                else:
+                    plots = LivePlots(station, settings.host, settings.viser_port, store)
                 plots.start()
             if settings.auto_connect:
                 station.connect()
-        app.state.plots = plots
+        app.state.plots, app.state.viser_gate = plots, gate
         try:
             yield
         finally:
+            if gate is not None:
+                gate.stop()
             if plots is not None:
                 plots.stop()
             jobs.shutdown()  # before the store closes: a stopped job records itself as cancelled
@@ -125,9 +143,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
              dependencies=[READ])
     def viser_url(request: Request) -> ViserInfo:
         if getattr(request.app.state, "plots", None) is None:
-            return ViserInfo(url=None)
+            return ViserInfo(url=None, expires_s=None)
         host = request.url.hostname or settings.host
-        return ViserInfo(url=f"http://{host}:{settings.viser_port}")
+        gate: ViserGate | None = request.app.state.viser_gate
+        if gate is not None:
+            return ViserInfo(url=gate.link(host), expires_s=TICKET_S)
+        # the port viser bound: it takes the next free one when the asked one is in use
+        return ViserInfo(url=f"http://{host}:{request.app.state.plots.server.get_port()}", expires_s=None)
 
     @app.get("/api/auth", tags=["auth"], response_model=AuthInfo,
              summary="Whether a token is needed, and the role of the one sent (needs none itself)")

@@ -456,10 +456,13 @@ class ViserInfo(BaseModel):
     """Where the viser live plots are.
 
     Attributes:
-        url: Address of the viser server (None when it is off).
+        url: Address of the viser live plots (None when they are off). On a station with
+            tokens it carries a single-use ticket that signs the browser in for viewing.
+        expires_s: How long the ticket in ``url`` stays valid [s] (None: the link needs none).
     """
 
     url: str | None
+    expires_s: float | None = None
 
 
 class AuthInfo(BaseModel):

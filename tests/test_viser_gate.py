@@ -1,0 +1,173 @@
+"""Issue 7 item 6 for the live plots: on a station with tokens, only a signed-in browser may watch.
+
+viser has no sign-in, so there it listens on loopback and ``app.api.viser_gate``
+holds the public viser port. These tests talk to that port over real sockets:
+its page and its websocket are refused without a pass, a link from
+``GET /api/viser`` gives one exactly once, and with it viser answers as usual.
+"""
+
+from __future__ import annotations
+
+import http.client
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from app.api.main import create_app
+from app.api.settings import Settings
+from app.api.viser_gate import PASS_S, TICKET_S, Signer
+from tests.conftest import free_port
+
+THERAPIST = "thr-" + "9a8b7c6d5e4f3a2b1c0d"
+ADMIN = "adm-" + "1a2b3c4d5e6f7a8b9c0d"
+
+
+@pytest.fixture(scope="module")
+def gated(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClient, int]]:
+    vport = free_port()
+    s = Settings(data_dir=str(tmp_path_factory.mktemp("gate")), viser_port=vport, auto_connect=False,
+                 admin_token=ADMIN, therapist_token=THERAPIST)  # type: ignore[arg-type]
+    with TestClient(create_app(s)) as c:
+        yield c, vport
+
+
+def _get(port: int, path: str, headers: dict[str, str] | None = None) -> tuple[int, dict[str, str], str]:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    try:
+        conn.request("GET", path, headers=headers or {})
+        r = conn.getresponse()
+        return r.status, {k.lower(): v for k, v in r.getheaders()}, r.read().decode("utf-8", "replace")
+    finally:
+        conn.close()
+
+
+def _link(c: TestClient) -> str:
+    r = c.get("/api/viser", headers={"Authorization": f"Bearer {THERAPIST}"})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["expires_s"] == TICKET_S
+    url: str = body["url"]
+    return url[url.index("/", len("http://")):]  # the path and query on the viser port
+
+
+def _open_link(c: TestClient, port: int) -> str:
+    """Open a fresh link as a browser would; returns the Cookie header the browser then sends."""
+    status, headers, _ = _get(port, _link(c))
+    assert status == 303, (status, headers)
+    return headers["set-cookie"].split(";", 1)[0]
+
+
+def _websocket(port: int, headers: dict[str, str]) -> Any:
+    import viser
+    from websockets.sync.client import connect
+    from websockets.typing import Subprotocol
+
+    return connect(f"ws://127.0.0.1:{port}", additional_headers=headers, open_timeout=10,
+                   subprotocols=[Subprotocol(f"viser-v{viser.__version__}")])
+
+
+# ------------------------------------------------------------------ tickets and passes
+
+
+def test_a_ticket_is_valid_once_and_only_until_it_expires() -> None:
+    now = [1000.0]
+    s = Signer(clock=lambda: now[0])
+    t = s.issue("ticket", 60.0)
+    assert s.check(t, "pass") == "a ticket is not a pass"
+    assert s.check(t, "ticket", spend=True) is None
+    assert s.check(t, "ticket", spend=True) == "this link has been used already"
+    late = s.issue("ticket", 60.0)
+    now[0] += 61.0
+    assert s.check(late, "ticket", spend=True) == "this link has expired"
+
+
+def test_a_forged_or_foreign_pass_is_refused() -> None:
+    s, other = Signer(), Signer()
+    p = s.issue("pass", 60.0)
+    kind, expiry, nonce, mac = p.split(".")
+    assert s.check(p, "pass") is None
+    for bad in (other.issue("pass", 60.0),                      # another station (or before a restart)
+                f"{kind}.{int(expiry) + 10**6}.{nonce}.{mac}",   # lifetime stretched by hand
+                p[:-1] + ("0" if p[-1] != "0" else "1"),         # signature altered
+                "pass", "", None):
+        assert s.check(bad, "pass") is not None, bad
+
+
+# ------------------------------------------------------------------ the gate on a running station
+
+
+def test_viser_itself_listens_on_loopback_only(gated: tuple[TestClient, int]) -> None:
+    c, port = gated
+    plots = c.app.state.plots  # type: ignore[attr-defined]
+    assert plots.server.get_host() == "127.0.0.1"
+    assert plots.server.get_port() != port
+
+
+def test_without_a_pass_the_page_and_the_websocket_are_refused(gated: tuple[TestClient, int]) -> None:
+    from websockets.exceptions import InvalidStatus
+
+    c, port = gated
+    status, _, page = _get(port, "/")
+    assert status == 401 and "Sign in first" in page and "no pass" in page
+    with pytest.raises(InvalidStatus) as e:
+        _websocket(port, {})
+    assert e.value.response.status_code == 401
+    # the API hands out links to signed-in callers only
+    assert c.get("/api/viser").status_code == 401
+
+
+def test_a_link_signs_the_browser_in_once_and_viser_then_answers(gated: tuple[TestClient, int]) -> None:
+    c, port = gated
+    link = _link(c)
+    status, headers, _ = _get(port, link + "&darkMode")
+    assert status == 303
+    assert headers["location"] == "/?darkMode="  # the ticket leaves the address, other options stay
+    cookie = headers["set-cookie"]
+    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and f"Max-Age={int(PASS_S)}" in cookie
+    status, _, page = _get(port, link)
+    assert status == 401 and "used already" in page
+    status, headers, page = _get(port, "/", {"Cookie": cookie.split(";", 1)[0]})
+    assert status == 200 and headers["content-type"].startswith("text/html") and "<title>Viser</title>" in page
+
+
+def test_with_a_pass_the_websocket_reaches_viser(gated: tuple[TestClient, int]) -> None:
+    c, port = gated
+    cookie = _open_link(c, port)
+    with _websocket(port, {"Cookie": cookie, "Origin": f"http://127.0.0.1:{port}"}) as ws:
+        first = ws.recv(timeout=10)
+    assert isinstance(first, bytes) and len(first) > 0  # viser's msgpack state for a new client
+
+
+def test_a_pass_cannot_be_ridden_from_another_site(gated: tuple[TestClient, int]) -> None:
+    from websockets.exceptions import InvalidStatus
+
+    c, port = gated
+    cookie = _open_link(c, port)
+    with pytest.raises(InvalidStatus) as e:
+        _websocket(port, {"Cookie": cookie, "Origin": "http://evil.example"})
+    assert e.value.response.status_code == 401
+    assert b"another site" in e.value.response.body
+
+
+def test_without_tokens_the_link_goes_straight_to_viser(tmp_path: Path) -> None:
+    s = Settings(data_dir=str(tmp_path), viser_port=free_port(), auto_connect=False)
+    with TestClient(create_app(s)) as c:
+        body = c.get("/api/viser").json()
+        assert c.app.state.viser_gate is None  # type: ignore[attr-defined]
+        assert body == {"url": f"http://testserver:{c.app.state.plots.server.get_port()}",  # type: ignore[attr-defined]
+                        "expires_s": None}
+
+
+def test_a_taken_viser_port_stops_the_start_with_the_reason(tmp_path: Path) -> None:
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        s = Settings(data_dir=str(tmp_path), viser_port=taken.getsockname()[1], auto_connect=False,
+                     admin_token=ADMIN)  # type: ignore[arg-type]
+        with pytest.raises(OSError, match="choose another --viser-port"), TestClient(create_app(s)):
+            pass
