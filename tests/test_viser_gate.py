@@ -171,3 +171,22 @@ def test_a_taken_viser_port_stops_the_start_with_the_reason(tmp_path: Path) -> N
                      admin_token=ADMIN)  # type: ignore[arg-type]
         with pytest.raises(OSError, match="choose another --viser-port"), TestClient(create_app(s)):
             pass
+
+
+def test_shutting_down_closes_the_viewers_connections(tmp_path: Path) -> None:
+    import time
+
+    from websockets.exceptions import ConnectionClosed
+
+    vport = free_port()
+    s = Settings(data_dir=str(tmp_path), viser_port=vport, auto_connect=False,
+                 admin_token=ADMIN, therapist_token=THERAPIST)  # type: ignore[arg-type]
+    with TestClient(create_app(s)) as c:
+        ws = _websocket(vport, {"Cookie": _open_link(c, vport)})
+        ws.recv(timeout=10)
+        t0 = time.monotonic()
+    assert time.monotonic() - t0 < 10.0
+    with pytest.raises(ConnectionClosed):
+        while True:  # what viser had sent before the end may still be buffered
+            ws.recv(timeout=5)
+    ws.close()
