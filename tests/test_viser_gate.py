@@ -190,3 +190,27 @@ def test_shutting_down_closes_the_viewers_connections(tmp_path: Path) -> None:
         while True:  # what viser had sent before the end may still be buffered
             ws.recv(timeout=5)
     ws.close()
+
+
+def _raw(port: int, data: bytes) -> bytes:
+    import socket
+
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.sendall(data)
+        s.shutdown(socket.SHUT_WR)  # all sent: the gate sees the end of the request
+        chunks = []
+        while chunk := s.recv(65536):
+            chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def test_malformed_requests_get_a_clear_answer_and_the_gate_keeps_serving(gated: tuple[TestClient, int]) -> None:
+    c, port = gated
+    assert _raw(port, b"HELLO\r\n\r\n").startswith(b"HTTP/1.1 400 ")
+    big = b"GET / HTTP/1.1\r\nHost: x\r\nX-Pad: " + b"a" * 40_000 + b"\r\n\r\n"
+    assert _raw(port, big).startswith(b"HTTP/1.1 431 ")
+    assert _raw(port, b"GET / HTTP/1.1\r\n") == b""  # a client that hangs up mid-head gets nothing
+    forged = b"GET /?ticket=ticket.99999999999.x.deadbeef HTTP/1.1\r\nHost: x\r\n\r\n"
+    assert b"not issued by this station" in _raw(port, forged)
+    status, _, _ = _get(port, "/", {"Cookie": _open_link(c, port)})
+    assert status == 200
