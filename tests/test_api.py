@@ -321,13 +321,29 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = int(s.getsockname()[1])
+    import time
+
+    import viser
+    from websockets.sync.client import connect
+    from websockets.typing import Subprotocol
+
     st = Station(data_dir=tmp_path)
     plots = LivePlots(st, "127.0.0.1", port)
+    viewer = None
     try:
         for k in range(400):
             tgt = math.nan if k < 200 else 1.2
             ref = math.nan if k < 200 else 3.0
             st.live.append((k * 0.005, 0.01 * k, tgt, 2.9, 3.1, ref, ref, 0.1, 0.2))
+        # nobody watching: nothing is encoded at all
+        plots.publish()
+        assert np.asarray(plots.h_torque.data[0]).size == 2  # still the placeholder built at start-up
+        viewer = connect(f"ws://127.0.0.1:{port}", subprotocols=[Subprotocol(f"viser-v{viser.__version__}")],
+                         open_timeout=10)
+        deadline = time.monotonic() + 10
+        while not plots._viewers:  # a bare websocket (no 3-D view, no camera) counts as watching
+            assert time.monotonic() < deadline, "the viewer was not counted"
+            time.sleep(0.01)
         plots.publish()
         for h in (plots.h_torque, plots.h_press, plots.h_speed, plots.h_err):
             assert all(np.all(np.isfinite(np.asarray(a))) for a in h.data), h
@@ -340,7 +356,17 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
         st.live.append((400 * 0.005, 4.0, 1.2, 2.9, 3.1, 3.0, 3.0, 0.1, 0.2))  # same angle: charts only
         plots.publish()
         assert len(sent) == 4
+        viewer.close()
+        deadline = time.monotonic() + 10
+        while plots._viewers:
+            assert time.monotonic() < deadline, "the viewer's leaving was not counted"
+            time.sleep(0.01)
+        st.live.append((401 * 0.005, 4.0, 1.2, 2.9, 3.1, 3.0, 3.0, 0.1, 0.2))
+        plots.publish()
+        assert len(sent) == 4  # nobody watching again: nothing encoded
     finally:
+        if viewer is not None:
+            viewer.close()
         plots.stop()
 
 
