@@ -335,9 +335,12 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
             tgt = math.nan if k < 200 else 1.2
             ref = math.nan if k < 200 else 3.0
             st.live.append((k * 0.005, 0.01 * k, tgt, 2.9, 3.1, ref, ref, 0.1, 0.2))
-        # nobody watching: nothing is encoded at all
+        # nobody watching: the charts are not encoded at all, but a finished run's metrics are
+        # drawn when it ends (not later, mid-exercise, for a viewer who connects then)
+        st.last_run = {"run_id": 7, "status": "complete", "metrics": {"mae": 0.05}}
         plots.publish()
         assert np.asarray(plots.h_torque.data[0]).size == 2  # still the placeholder built at start-up
+        assert "Run 7" in plots.h_metrics.content
         viewer = connect(f"ws://127.0.0.1:{port}", subprotocols=[Subprotocol(f"viser-v{viser.__version__}")],
                          open_timeout=10)
         deadline = time.monotonic() + 10

@@ -118,11 +118,17 @@ class LivePlots:
     def publish(self) -> None:
         """Push the latest window to every client (one call; the thread calls it at :data:`PUBLISH_HZ`).
 
-        With nobody watching it does nothing: viser would still encode every chart for the
-        state it replays to a newcomer, ≈ 1.1 ms of interpreter time per push beside the loop
-        (25 pushes a second), and render each finished run's radar chart for no one. A viewer
-        who connects sees the charts as last pushed, then fresh ones within one push.
+        With nobody watching, the charts are left alone: viser would still encode each of them
+        for the state it replays to a newcomer, ≈ 1.1 ms of interpreter time per push beside
+        the loop (25 pushes a second). A viewer who connects sees the charts as last pushed,
+        then fresh ones within one push. A finished run's metrics and radar chart are drawn
+        when the run ends whoever watches: drawn later, for a viewer who connects during the
+        next exercise, matplotlib would hold the interpreter for tens of milliseconds mid-run.
         """
+        last = self.station.last_run
+        if last is not None and last is not self._last_run:
+            self._last_run = last
+            self._show_run(last)
         if not self._viewers:
             return
         written, r = self.station.live.window(WINDOW_S, MAX_POINTS)
@@ -148,10 +154,6 @@ class LivePlots:
             if not abs(th - self._theta) < HANDLE_STEP_RAD:  # also true for the first (NaN)
                 self._theta = th
                 self.h_handle.wxyz = (math.cos(th / 2.0), 0.0, 0.0, math.sin(th / 2.0))
-        last = self.station.last_run
-        if last is not None and last is not self._last_run:
-            self._last_run = last
-            self._show_run(last)
 
     def _show_run(self, last: dict[str, Any]) -> None:
         m = last.get("metrics")
