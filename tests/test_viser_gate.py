@@ -129,6 +129,9 @@ def test_a_link_signs_the_browser_in_once_and_viser_then_answers(gated: tuple[Te
     assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and f"Max-Age={int(PASS_S)}" in cookie
     status, _, page = _get(port, link)
     assert status == 401 and "used already" in page
+    # browsers read "/\\host" as "//host": a path copied into the redirect would send them there
+    status, headers, _ = _get(port, "/\\elsewhere.example" + _link(c))
+    assert status == 303 and headers["location"] == "/"
     status, headers, page = _get(port, "/", {"Cookie": cookie.split(";", 1)[0]})
     assert status == 200 and headers["content-type"].startswith("text/html") and "<title>Viser</title>" in page
 

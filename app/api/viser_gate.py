@@ -217,7 +217,9 @@ class ViserGate:
             else:
                 # the page again without the ticket, now with a pass the browser sends on its own
                 rest = urlencode([(k, v) for k, v in query if k != "ticket"])
-                location = (url.path or "/") + (f"?{rest}" if rest else "")
+                # always this server's root (viser serves its page there): a path such as
+                # "//elsewhere" must not turn the answer into a redirect to another site
+                location = "/" + (f"?{rest}" if rest else "")
                 cookie = (f"{self.cookie}={self.signer.issue('pass', PASS_S)}; Max-Age={int(PASS_S)}; "
                           "Path=/; HttpOnly; SameSite=Strict")
                 writer.write(_response("303 See Other", {"Location": location, "Set-Cookie": cookie,
