@@ -66,3 +66,13 @@ def live_server(settings: Any) -> Iterator[str]:
     finally:
         server.should_exit = True
         th.join(30)
+
+
+def viser_viewer(port: int, headers: dict[str, str] | None = None) -> Any:
+    """A bare websocket to a viser server, as its page opens one (no 3-D view, no camera pose)."""
+    import viser
+    from websockets.sync.client import connect
+    from websockets.typing import Subprotocol
+
+    return connect(f"ws://127.0.0.1:{port}", additional_headers=headers or {}, open_timeout=10,
+                   subprotocols=[Subprotocol(f"viser-v{viser.__version__}")])

@@ -321,11 +321,7 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = int(s.getsockname()[1])
-    import time
-
-    import viser
-    from websockets.sync.client import connect
-    from websockets.typing import Subprotocol
+    from tests.conftest import viser_viewer
 
     st = Station(data_dir=tmp_path)
     plots = LivePlots(st, "127.0.0.1", port)
@@ -341,8 +337,7 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
         plots.publish()
         assert np.asarray(plots.h_torque.data[0]).size == 2  # still the placeholder built at start-up
         assert "Run 7" in plots.h_metrics.content
-        viewer = connect(f"ws://127.0.0.1:{port}", subprotocols=[Subprotocol(f"viser-v{viser.__version__}")],
-                         open_timeout=10)
+        viewer = viser_viewer(port)
         deadline = time.monotonic() + 10
         while not plots._viewers:  # a bare websocket (no 3-D view, no camera) counts as watching
             assert time.monotonic() < deadline, "the viewer was not counted"

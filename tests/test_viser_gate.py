@@ -11,7 +11,6 @@ from __future__ import annotations
 import http.client
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
@@ -19,7 +18,7 @@ from fastapi.testclient import TestClient
 from app.api.main import create_app
 from app.api.settings import Settings
 from app.api.viser_gate import PASS_S, TICKET_S, Signer
-from tests.conftest import free_port
+from tests.conftest import free_port, viser_viewer
 
 THERAPIST = "thr-" + "9a8b7c6d5e4f3a2b1c0d"
 ADMIN = "adm-" + "1a2b3c4d5e6f7a8b9c0d"
@@ -58,15 +57,6 @@ def _open_link(c: TestClient, port: int) -> str:
     status, headers, _ = _get(port, _link(c))
     assert status == 303, (status, headers)
     return headers["set-cookie"].split(";", 1)[0]
-
-
-def _websocket(port: int, headers: dict[str, str]) -> Any:
-    import viser
-    from websockets.sync.client import connect
-    from websockets.typing import Subprotocol
-
-    return connect(f"ws://127.0.0.1:{port}", additional_headers=headers, open_timeout=10,
-                   subprotocols=[Subprotocol(f"viser-v{viser.__version__}")])
 
 
 # ------------------------------------------------------------------ tickets and passes
@@ -113,7 +103,7 @@ def test_without_a_pass_the_page_and_the_websocket_are_refused(gated: tuple[Test
     status, _, page = _get(port, "/")
     assert status == 401 and "Sign in first" in page and "no pass" in page
     with pytest.raises(InvalidStatus) as e:
-        _websocket(port, {})
+        viser_viewer(port, {})
     assert e.value.response.status_code == 401
     # the API hands out links to signed-in callers only
     assert c.get("/api/viser").status_code == 401
@@ -139,7 +129,7 @@ def test_a_link_signs_the_browser_in_once_and_viser_then_answers(gated: tuple[Te
 def test_with_a_pass_the_websocket_reaches_viser(gated: tuple[TestClient, int]) -> None:
     c, port = gated
     cookie = _open_link(c, port)
-    with _websocket(port, {"Cookie": cookie, "Origin": f"http://127.0.0.1:{port}"}) as ws:
+    with viser_viewer(port, {"Cookie": cookie, "Origin": f"http://127.0.0.1:{port}"}) as ws:
         first = ws.recv(timeout=10)
     assert isinstance(first, bytes) and len(first) > 0  # viser's msgpack state for a new client
 
@@ -150,7 +140,7 @@ def test_a_pass_cannot_be_ridden_from_another_site(gated: tuple[TestClient, int]
     c, port = gated
     cookie = _open_link(c, port)
     with pytest.raises(InvalidStatus) as e:
-        _websocket(port, {"Cookie": cookie, "Origin": "http://evil.example"})
+        viser_viewer(port, {"Cookie": cookie, "Origin": "http://evil.example"})
     assert e.value.response.status_code == 401
     assert b"another site" in e.value.response.body
 
@@ -185,7 +175,7 @@ def test_shutting_down_closes_the_viewers_connections(tmp_path: Path) -> None:
     s = Settings(data_dir=str(tmp_path), viser_port=vport, auto_connect=False,
                  admin_token=ADMIN, therapist_token=THERAPIST)  # type: ignore[arg-type]
     with TestClient(create_app(s)) as c:
-        ws = _websocket(vport, {"Cookie": _open_link(c, vport)})
+        ws = viser_viewer(vport, {"Cookie": _open_link(c, vport)})
         ws.recv(timeout=10)
         t0 = time.monotonic()
     assert time.monotonic() - t0 < 10.0

@@ -130,7 +130,6 @@ class ViserGate:
         self.cookie = f"cwrr_viser_{port}"  # cookies ignore ports: two stations on one host keep theirs apart
         self._loop = asyncio.new_event_loop()
         self._server: asyncio.Server | None = None
-        self._writers: set[asyncio.StreamWriter] = set()
         self._thread = threading.Thread(target=self._loop.run_forever, name="cwrr-viser-gate", daemon=True)
 
     def start(self) -> None:
@@ -162,8 +161,7 @@ class ViserGate:
         async def close() -> None:
             if self._server is not None:
                 self._server.close()
-            for w in list(self._writers):
-                w.close()
+            # each connection's task closes both its ends as it is cancelled (the finally blocks below)
             others = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
             for t in others:
                 t.cancel()
@@ -181,13 +179,11 @@ class ViserGate:
         return f"http://{host}:{self.port}/?ticket={self.signer.issue('ticket', TICKET_S)}"
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self._writers.add(writer)
         try:
             await self._handle(reader, writer)
         except (ConnectionError, OSError, asyncio.IncompleteReadError):
             pass  # a viewer that went away mid-answer
         finally:
-            self._writers.discard(writer)
             writer.close()
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -234,7 +230,6 @@ class ViserGate:
             await writer.drain()
             return
         up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.upstream_port)
-        self._writers.add(up_writer)
         up_writer.write(head)
         pipes = {asyncio.ensure_future(self._pipe(reader, up_writer)),
                  asyncio.ensure_future(self._pipe(up_reader, writer))}
@@ -244,7 +239,6 @@ class ViserGate:
         finally:
             for p in pipes:
                 p.cancel()
-            self._writers.discard(up_writer)
             up_writer.close()
 
     def _pass_of(self, cookie_header: str) -> str | None:
