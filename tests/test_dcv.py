@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from app.cli import main
@@ -269,6 +269,9 @@ def test_identify_dcv_cli_on_the_iso_valve_writes_plots(tmp_path: Any, capsys: p
 @given(shape=st.sampled_from(("exponential", "algebraic")), tau=st.floats(0.2, 80.0), k=st.floats(0.5, 4.0),
        dp=st.floats(0.3, 5.0), sign=st.sampled_from((-1.0, 1.0)), t_end=st.floats(2.0, 300.0),
        seed=st.integers(0, 2**16))
+# found by a random draw: 2 s of a slow algebraic creep, each window step inside the noise band
+# but their sum outside it, had been called settled with 0.31 bar to go
+@example(shape="algebraic", tau=54.0, k=0.5, dp=0.3125, sign=-1.0, t_end=2.0, seed=0)
 def test_remaining_change_never_calls_an_unfinished_approach_settled(
         shape: str, tau: float, k: float, dp: float, sign: float, t_end: float, seed: int) -> None:
     """A CPR step of ≥ 0.3 bar closing as P∞ − Δp·e^(−t/τ) (τ from 0.2 to 80 s) or algebraically,

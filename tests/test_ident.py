@@ -408,6 +408,20 @@ def test_fused_advance_and_measure_matches_the_two_step_path() -> None:
         mb = b.advance_and_measure(t, 0.002).copy()
         assert a.t == pytest.approx(b.t)
         np.testing.assert_allclose(ma, mb, rtol=0, atol=1e-12)
+        if i == 100:
+            # a new supply (the fault injection's path) and a new user program: the one-call
+            # tick must follow the replaced kernel and program, not the ones it started with
+            from dataclasses import replace
+
+            from app.engine.human import HumanProgram
+            from app.engine.physics import plant as pl
+
+            p2 = replace(a.params, supply=replace(a.params.supply, p_supply_bar=3.0))
+            prog = HumanProgram(np.array([0, 1]), np.array([0.0, 0.3]))  # integer times: made float
+            for s in (a, b):
+                s.params, s.kernel = p2, pl.build_kernel(p2)
+                s.set_program(prog)
+    assert b.truth()["p_s_bar"] < 3.5 and b.truth()["theta"] > 0.05
 
 
 @pytest.mark.parametrize("target", [0.75, 1.5])

@@ -28,6 +28,9 @@ class HumanProgram:
     pos: np.ndarray
 
     def __post_init__(self) -> None:
+        # the compiled plant reads these as float64 C arrays (see sim._compiled_entry)
+        object.__setattr__(self, "t", np.ascontiguousarray(self.t, dtype=np.float64))
+        object.__setattr__(self, "pos", np.ascontiguousarray(self.pos, dtype=np.float64))
         if self.t.shape != self.pos.shape or self.t.ndim != 1:
             raise ParameterError("human program: t and pos must be 1-D arrays of equal length")
         if self.t.size and np.any(np.diff(self.t) < 0):

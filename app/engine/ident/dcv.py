@@ -391,7 +391,8 @@ def remaining_change(p: np.ndarray, dt: float) -> float:
     by :data:`NOISE_K` of its noise SD (from the scatter of the last
     window's second differences) before r is formed — the estimate is an
     upper bound, and a creep whose slowing is not resolved is never called
-    settled. Steps both within that band are no resolved motion: 0.
+    settled. Steps both within that band, and their sum too, are no
+    resolved motion: 0.
 
     Args:
         p: Pressure samples since the signal step [bar].
@@ -411,7 +412,9 @@ def remaining_change(p: np.ndarray, dt: float) -> float:
     d1, d2 = abs(m2 - m1), abs(m3 - m2)
     noise = float(np.std(np.diff(p[n - w:], 2))) / math.sqrt(6.0)  # white: var(Δ²) = 6σ², trend-free
     band = NOISE_K * noise * math.sqrt(2.0 / w)  # SD of a difference of two w-sample means, ×K
-    if d1 <= band and d2 <= band:
+    if d1 <= band and d2 <= band and abs(m3 - m1) <= band:
+        # neither step nor their sum resolved: no motion (the sum matters for a creep too slow
+        # to resolve in one step but not in two, which is no sign of having arrived)
         return 0.0
     hi, lo = d2 + band, d1 - band
     if lo <= hi:

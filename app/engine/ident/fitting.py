@@ -399,6 +399,8 @@ def onset_level(f: np.ndarray, x: np.ndarray, i: int, dt: float, fc: float, vs: 
                         xx += v * h
                     if k >= i - 1:
                         sse += (xx - x[k]) ** 2
+                        if sse >= best_sse:
+                            break  # the sum only grows: this candidate cannot win any more
                 if sse < best_sse:
                     best_sse = sse
                     best = fs
