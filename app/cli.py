@@ -319,8 +319,13 @@ def _modbus_plant(args: argparse.Namespace) -> int:
     from app.engine.loop import WallClock
 
     cfg = load_config(args.hardware) if args.hardware else HardwareConfig(backend="modbus")
+    from app.engine.sim import Simulator
+
     rig = SimulatedRig(WallClock(), period=1.0 / cfg.rate_hz)
     rig.set_program(HumanProgram.rest())
+    # compile (or load) the plant before listening: a first request that waited for it would
+    # outlast the station's timeout and read as a lost link
+    Simulator(rig.params).advance_and_measure(0.01, rig.period)
     server = PlantServer(rig, cfg, host=args.host, port=args.port).start()
     print(f"cwrr modbus-plant: the simulated rotary rig on modbus://{server.host}:{server.port} "
           f"(register layout: app/engine/hardware/modbus.py); Ctrl-C stops", flush=True)

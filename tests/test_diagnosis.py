@@ -54,6 +54,20 @@ def test_a_log_in_the_fixed_format_round_trips(tmp_path: Path) -> None:
     assert exp.dt == pytest.approx(0.005)
 
 
+def test_a_log_from_a_windows_tool_reads_the_same(tmp_path: Path) -> None:
+    """A byte-order mark, CRLF line ends and blanks after the commas change nothing."""
+    data = _frame()
+    write_log(tmp_path, "plain", data, META)
+    lines = (tmp_path / "plain.csv").read_text().splitlines()
+    (tmp_path / "win.csv").write_bytes(("\ufeff" + ", ".join(lines[0].split(",")) + "\r\n"
+                                        + "\r\n".join(lines[1:]) + "\r\n").encode("utf-8"))
+    (tmp_path / "win.json").write_bytes(("\ufeff" + json.dumps(META)).encode("utf-8"))
+    a, b = read_log(tmp_path / "plain"), read_log(tmp_path / "win")
+    for c in a.channels:
+        np.testing.assert_array_equal(a.channels[c], b.channels[c])
+    assert b.meta["rig"] == "rotary"
+
+
 @pytest.mark.parametrize(("mutate", "message"), [
     (lambda h, r, m: (h[:-1], r[:, :-1], m), "missing column(s) torque"),
     (lambda h, r, m: (h, np.where(np.arange(r.size).reshape(r.shape) == 5 * 11 + 5, np.nan, r), m),

@@ -168,6 +168,42 @@ def test_samples_and_commands_cross_the_link_scaled_as_the_simulator_sees_them()
         server.stop()
 
 
+def test_cwrr_modbus_plant_serves_the_simulated_rig_to_the_station_backend() -> None:
+    """``cwrr modbus-plant`` in a process of its own, driven by the station's Modbus backend as
+    configured by default: chamber a fills and b vents on command, and Ctrl-C stops it cleanly."""
+    import select
+    import signal
+    import subprocess
+    import sys
+
+    from tests.conftest import free_port
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "app", "modbus-plant", "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and proc.stderr is not None
+        ready, _, _ = select.select([proc.stdout], [], [], 120.0)  # a cold numba cache compiles first
+        banner = proc.stdout.readline() if ready else ""
+        assert f"modbus://127.0.0.1:{port}" in banner, (banner, proc.poll())
+        clock = WallClock()
+        rig = ModbusRig(HardwareConfig(backend="modbus", modbus=ModbusLink(port=port)), clock, 0.005)
+        rig.activate()
+        start = rig.read()
+        t_end = time.monotonic() + 1.0
+        while time.monotonic() < t_end:
+            rig.read()
+            rig.write(Command(3.0, 1.0, 0.0, 10.0))
+            time.sleep(0.005)
+        m = rig.read()
+        rig.deactivate()
+        assert start.p_a < 1.2 and m.p_a > 3.5 and m.p_b < 2.5, (start, m)  # PRVs at 3 V and 1 V: ≈ 4 and 2 bar
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(20.0)
+    assert rc == 0, proc.stderr.read() if proc.stderr else ""
+
+
 @pytest.mark.serial  # paced, plant and station in one interpreter: beside two busy processes the
 # overrun fault latched before the cut in 2 of 6 runs (a harness artefact; a coupler is its own box)
 def test_a_closed_link_mid_run_ends_in_the_safe_state_and_reconnecting_resumes(tmp_path: Path) -> None:

@@ -154,6 +154,47 @@ def test_without_tokens_the_link_goes_straight_to_viser(tmp_path: Path) -> None:
                         "expires_s": None}
 
 
+def test_behind_a_port_mapping_or_a_proxy_the_link_names_the_public_address(tmp_path: Path) -> None:
+    """``viser_public_url``: the link points there, and a proxy's forwarded websocket (Host the
+    upstream name, Origin the public one) is let through while other sites stay refused."""
+    from websockets.exceptions import InvalidStatus
+
+    vport = free_port()
+    s = Settings(data_dir=str(tmp_path), viser_port=vport, auto_connect=False, admin_token=ADMIN,
+                 therapist_token=THERAPIST, viser_public_url="https://plots.lab.example:9443/")  # type: ignore[arg-type]
+    with TestClient(create_app(s)) as c:
+        url = c.get("/api/viser", headers={"Authorization": f"Bearer {THERAPIST}"}).json()["url"]
+        assert url.startswith("https://plots.lab.example:9443/?ticket="), url
+        status, headers, _ = _get(vport, url[url.index("/?"):])  # what the proxy forwards
+        assert status == 303 and headers["location"] == "/"
+        cookie = headers["set-cookie"].split(";", 1)[0]
+        with viser_viewer(vport, {"Cookie": cookie, "Origin": "https://plots.lab.example:9443"}) as ws:
+            assert isinstance(ws.recv(timeout=10), bytes)
+        with pytest.raises(InvalidStatus) as e:
+            viser_viewer(vport, {"Cookie": cookie, "Origin": "https://evil.example"})
+        assert e.value.response.status_code == 401
+    s = Settings(data_dir=str(tmp_path), viser_port=free_port(), auto_connect=False,
+                 viser_public_url="http://station.lab.example:9080")
+    with TestClient(create_app(s)) as c:
+        assert c.get("/api/viser").json() == {"url": "http://station.lab.example:9080", "expires_s": None}
+
+
+@pytest.mark.parametrize(("url", "words"), [
+    ("ftp://station:21", "must look like http://host:port"),
+    ("station:9080", "must look like http://host:port"),
+    ("http://station:9080/plots", "served at the root"),
+    ("http://station:9080/?x=1", "served at the root"),
+    ("http://user:secret@station:9080", "user name or password"),
+    ("http://station:99999", "not a URL"),
+])
+def test_a_public_address_that_cannot_work_is_refused(tmp_path: Path, url: str, words: str) -> None:
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match=words) as e:
+        Settings(data_dir=str(tmp_path), viser_public_url=url)
+    assert "secret" not in str(e.value)
+
+
 def test_a_taken_viser_port_stops_the_start_with_the_reason(tmp_path: Path) -> None:
     import socket
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ipaddress
 from typing import Annotated
+from urllib.parse import urlsplit
 
 from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -18,6 +19,10 @@ class Settings(BaseSettings):
         host: Bind address.
         port: HTTP port.
         viser_port: Port of the viser live-plot server (0: no viser).
+        viser_public_url: Where browsers reach the live plots, ``http[s]://host[:port]``,
+            when that is not this host's ``viser_port`` (a container's port
+            mapping, a reverse proxy); empty: the dashboard's own host name
+            and ``viser_port``.
         rate_hz: Control rate [Hz].
         data_dir: Where run logs and the SQLite store live.
         database_url: Run store; default ``sqlite:///<data_dir>/cwrr.sqlite3``.
@@ -45,6 +50,7 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=1, le=65535)] = 8000
     viser_port: Annotated[int, Field(ge=0, le=65535)] = 8080
+    viser_public_url: str = ""
     rate_hz: Annotated[float, Field(ge=10.0, le=2000.0)] = 200.0
     data_dir: str = "data"
     database_url: str = ""
@@ -73,6 +79,8 @@ class Settings(BaseSettings):
         if not tokens and not is_loopback(self.host):
             raise ValueError(f"host = {self.host!r} would open the rig to the network without authentication: "
                              f"set CWRR_ADMIN_TOKEN (and optionally CWRR_THERAPIST_TOKEN), or bind to 127.0.0.1")
+        if self.viser_public_url:
+            check_public_url(self.viser_public_url)
         if "*" in self.cors_origins:
             raise ValueError("cors_origins: '*' would let any web page drive the rig; list the origins")
         return self
@@ -86,6 +94,34 @@ class Settings(BaseSettings):
     def db_url(self) -> str:
         """The effective database URL."""
         return self.database_url or f"sqlite:///{self.data_dir}/cwrr.sqlite3"
+
+
+def check_public_url(url: str) -> None:
+    """Refuse a live-plot address that is not ``http[s]://host[:port]``.
+
+    The gate always sends a signed-in browser to the root of that address, so
+    a path, query or fragment could not be honoured; say so instead of
+    producing links that do not work.
+
+    Raises:
+        ValueError: Naming what is wrong.
+    """
+    # a URL with credentials in it is never echoed: these messages end up in logs
+    shown = "(the URL given)" if "@" in url else repr(url)
+    try:
+        u = urlsplit(url)
+        port = u.port  # raises on a port that is not a number in 0–65535
+    except ValueError as exc:
+        raise ValueError(f"viser_public_url = {shown}: not a URL ({exc})") from None
+    if port == 0:
+        raise ValueError(f"viser_public_url = {shown}: port 0 cannot be reached")
+    if u.scheme not in ("http", "https") or not u.hostname:
+        raise ValueError(f"viser_public_url = {shown} must look like http://host:port or https://host")
+    if u.username is not None or u.password is not None:
+        raise ValueError("viser_public_url must not carry a user name or password")
+    if u.path not in ("", "/") or u.query or u.fragment:
+        raise ValueError(f"viser_public_url = {shown}: the live plots are served at the root of their "
+                         "address; give scheme, host and port only")
 
 
 def is_loopback(host: str) -> bool:

@@ -125,8 +125,10 @@ class ViserGate:
         signer: Signs the tickets ``GET /api/viser`` hands out and the passes the gate sets.
     """
 
-    def __init__(self, host: str, port: int, upstream_port: int, signer: Signer) -> None:
+    def __init__(self, host: str, port: int, upstream_port: int, signer: Signer,
+                 public_host: str | None = None) -> None:
         self.host, self.port, self.upstream_port, self.signer = host, port, upstream_port, signer
+        self.public_host = public_host  # the name browsers use when a proxy stands in front (its Origin)
         self.cookie = f"cwrr_viser_{port}"  # cookies ignore ports: two stations on one host keep theirs apart
         self._loop = asyncio.new_event_loop()
         self._server: asyncio.Server | None = None
@@ -174,9 +176,16 @@ class ViserGate:
         if not self._thread.is_alive():
             self._loop.close()
 
-    def link(self, host: str) -> str:
-        """A fresh single-use link to the plots, as a browser on ``host`` reaches this station."""
-        return f"http://{host}:{self.port}/?ticket={self.signer.issue('ticket', TICKET_S)}"
+    def link(self, host: str, base: str | None = None) -> str:
+        """A fresh single-use link to the plots.
+
+        Args:
+            host: The host name the browser reached the dashboard by.
+            base: ``scheme://host[:port]`` browsers reach this gate at, when
+                not ``http://{host}:{port}`` (port mapping, reverse proxy).
+        """
+        root = base.rstrip("/") if base else f"http://{host}:{self.port}"
+        return f"{root}/?ticket={self.signer.issue('ticket', TICKET_S)}"
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
@@ -248,15 +257,16 @@ class ViserGate:
             return None
         return morsel.value if morsel is not None else None
 
-    @staticmethod
-    def _same_host(headers: dict[str, str]) -> bool:
+    def _same_host(self, headers: dict[str, str]) -> bool:
         # SameSite=Strict already keeps the pass off other sites' requests; a websocket's Origin
         # is checked as well, because browsers send it and a pass must not be ridden from elsewhere
         origin = headers.get("origin")
         if origin is None or origin == "null":
             return origin is None
         host = headers.get("host", "")
-        return urlsplit(origin).hostname == urlsplit(f"//{host}").hostname
+        seen = urlsplit(origin).hostname
+        # behind a proxy the Host header may be the proxy's upstream name; the public one counts too
+        return seen == urlsplit(f"//{host}").hostname or (self.public_host is not None and seen == self.public_host)
 
     @staticmethod
     async def _pipe(src: asyncio.StreamReader, dst: asyncio.StreamWriter) -> None:

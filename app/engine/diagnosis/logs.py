@@ -142,13 +142,15 @@ def read_log(path: str | Path) -> Experiment:
     if not json_path.is_file():
         raise LogFormatError(f"{name}: {json_path} does not exist (every log is a .csv + .json pair)")
     try:
-        meta = json.loads(json_path.read_text(encoding="utf-8"))
+        # utf-8-sig: a byte-order mark (Windows tools write one) is not part of the first key
+        meta = json.loads(json_path.read_text(encoding="utf-8-sig"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise LogFormatError(f"{name}.json: not valid JSON ({exc})") from None
     if not isinstance(meta, dict):
         raise LogFormatError(f"{name}.json: must hold an object")
-    with open(csv_path, encoding="utf-8") as fh:
-        header = fh.readline().strip().split(",")
+    with open(csv_path, encoding="utf-8-sig") as fh:
+        # names are compared without surrounding blanks ("t, z_a, …" is the same header)
+        header = [c.strip() for c in fh.readline().split(",")]
         try:
             data = np.loadtxt(fh, delimiter=",", ndmin=2)
         except ValueError as exc:
