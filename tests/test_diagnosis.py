@@ -68,6 +68,19 @@ def test_a_log_from_a_windows_tool_reads_the_same(tmp_path: Path) -> None:
     assert b.meta["rig"] == "rotary"
 
 
+def test_a_clock_counted_from_1970_is_read_from_the_log_start(tmp_path: Path) -> None:
+    """Another rig's logger may stamp wall-clock time: the replay counts from the first row."""
+    data = _frame()
+    data[:, 0] += 1.7e9
+    _write_raw(tmp_path, "wall", list(LOG_COLUMNS), data, META)
+    exp = read_log(tmp_path / "wall")
+    assert exp.t[0] == 0.0 and exp.dt == pytest.approx(0.005, rel=1e-4)  # float64 spacing at 1.7e9 s: 0.24 µs
+    data[100, 0] = data[99, 0]
+    _write_raw(tmp_path, "wall", list(LOG_COLUMNS), data, META)
+    with pytest.raises(LogFormatError, match=r"row 101 \(t = 1700000000\.495 s after 1700000000\.495 s\)"):
+        read_log(tmp_path / "wall")
+
+
 @pytest.mark.parametrize(("mutate", "message"), [
     (lambda h, r, m: (h[:-1], r[:, :-1], m), "missing column(s) torque"),
     (lambda h, r, m: (h, np.where(np.arange(r.size).reshape(r.shape) == 5 * 11 + 5, np.nan, r), m),

@@ -113,8 +113,9 @@ def check_frame(name: str, columns: list[str], data: np.ndarray, meta: dict[str,
     dt = np.diff(data[:, 0])
     if (dt <= 0).any():
         i = int(np.argmax(dt <= 0)) + 1
-        raise LogFormatError(f"{name}: time is not increasing at row {i + 1} (t = {data[i, 0]:g} s after "
-                             f"{data[i - 1, 0]:g} s)")
+        # repr, not :g — a clock counted from 1970 needs all its digits to show the two differ or not
+        raise LogFormatError(f"{name}: time is not increasing at row {i + 1} (t = {float(data[i, 0])!r} s after "
+                             f"{float(data[i - 1, 0])!r} s)")
     rate = 1.0 / float(np.median(dt))
     if abs(rate - float(meta["sample_rate_hz"])) > 0.05 * float(meta["sample_rate_hz"]):
         raise LogFormatError(f"{name}: samples come at {rate:.4g} Hz but the metadata says "
