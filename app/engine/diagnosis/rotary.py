@@ -107,7 +107,7 @@ def replay_pneumatics(k: Any, cmds: np.ndarray, theta: np.ndarray, omega: np.nda
     """Step the pneumatic network along a measured motion.
 
     Args:
-        k: Kernel constants (the user's impedance must be zero).
+        k: Kernel constants.
         cmds: (n, 4) commands z_a, z_b, u_a, u_b [V], held from sample i to i+1.
         theta: (n,) vane angle [rad] at the samples.
         omega: (n,) vane speed [rad/s] at the samples.
@@ -119,10 +119,7 @@ def replay_pneumatics(k: Any, cmds: np.ndarray, theta: np.ndarray, omega: np.nda
     n = cmds.shape[0]
     work = np.empty(pl.NWORK)
     jac = np.empty((pl.NN, pl.NN))
-    o = np.zeros(pl.NO)
     cmd = np.zeros(pl.NU)
-    empty = np.zeros(0)
-    t = 0.0
     for i in range(n):
         # read the pressures at the measured angle, not where the last substep's mechanics left it
         x[pl.I_POS] = theta[i]
@@ -138,8 +135,7 @@ def replay_pneumatics(k: Any, cmds: np.ndarray, theta: np.ndarray, omega: np.nda
             f = s / n_sub
             x[pl.I_POS] = theta[i] + (theta[j1] - theta[i]) * f
             x[pl.I_VEL] = omega[i] + (omega[j1] - omega[i]) * f
-            pl.step(t, x, cmd, k, empty, empty, o, work, jac)
-            t += k.h
+            pl.step_pneumatics(x, cmd, k, work, jac)  # the vane moves as measured, not by its mechanics
 
 
 @njit(cache=True, error_model="numpy")

@@ -542,31 +542,27 @@ def regulator_update(
     x[I_XA + side] = xc + (x[I_XA + side] - xc) * decay
 
 
-@njit(cache=True, error_model="numpy")
-def step(
-    t: float,
-    x: np.ndarray,
-    cmd: np.ndarray,
-    k: Any,
-    prog_t: np.ndarray,
-    prog_pos: np.ndarray,
-    out: np.ndarray,
-    work: np.ndarray,
-    jac: np.ndarray,
-) -> None:
-    """Advance state ``x`` in place by one substep ``k.h`` from time ``t``.
+@njit(cache=True, nogil=True, error_model="numpy")
+def step_pneumatics(x: np.ndarray, cmd: np.ndarray, k: Any, work: np.ndarray, jac: np.ndarray) -> float:
+    """Advance the valves, gas masses, supply and chamber temperatures of ``x`` by ``k.h``.
+
+    The first part of :func:`step`, with the vane held where ``x`` has it:
+    the log replay of the gap diagnosis moves the vane along the measured
+    angle itself, and the mechanics it would overwrite are a quarter of a
+    substep's time.
 
     Args:
-        t: Time at the start of the substep [s].
-        x: State vector (NX), modified in place.
+        x: State vector (NX), modified in place (not position or speed).
         cmd: Commands held over the substep: z_a, z_b [V], u_a, u_b [V],
             PRV exit disturbances dp_a, dp_b [Pa].
         k: Kernel constants.
-        prog_t: User program time breakpoints [s].
-        prog_pos: Intended position at those times [rad or m].
-        out: Outputs (NO): T_i, T_f, T_p [N·m or N], supply flow [kg/s].
-        work: Scratch, at least NWORK floats.
+        work: Scratch, at least NWORK floats; on return it holds the gas
+            mass changes ``work[4·NN:5·NN]`` [kg] and the node pressures at
+            the start ``work[2·NN:3·NN]`` [Pa].
         jac: Scratch NN×NN.
+
+    Returns:
+        The mass flow drawn from the supply [kg/s].
     """
     h = k.h
     # 1. valve command lags and supply pressure
@@ -635,7 +631,6 @@ def step(
     else:
         x[I_PS] = k.ps0
     # 3. chamber energy balance (heat-transfer effect)
-    pos0 = x[I_POS]
     vel0 = x[I_VEL]
     if k.heat_on:
         dv = vel0 * h
@@ -652,6 +647,41 @@ def step(
             q_wall = k.heat_ha * (k.t_atm - tc) * h
             u_new = u_old + enth - p[n_c] * dvol + q_wall
             x[it] = min(max(u_new / (m_new * CV_AIR), 150.0), 600.0)
+    return q_sup
+
+
+@njit(cache=True, error_model="numpy")
+def step(
+    t: float,
+    x: np.ndarray,
+    cmd: np.ndarray,
+    k: Any,
+    prog_t: np.ndarray,
+    prog_pos: np.ndarray,
+    out: np.ndarray,
+    work: np.ndarray,
+    jac: np.ndarray,
+) -> None:
+    """Advance state ``x`` in place by one substep ``k.h`` from time ``t``.
+
+    Args:
+        t: Time at the start of the substep [s].
+        x: State vector (NX), modified in place.
+        cmd: Commands held over the substep: z_a, z_b [V], u_a, u_b [V],
+            PRV exit disturbances dp_a, dp_b [Pa].
+        k: Kernel constants.
+        prog_t: User program time breakpoints [s].
+        prog_pos: Intended position at those times [rad or m].
+        out: Outputs (NO): T_i, T_f, T_p [N·m or N], supply flow [kg/s].
+        work: Scratch, at least NWORK floats.
+        jac: Scratch NN×NN.
+    """
+    h = k.h
+    pos0 = x[I_POS]
+    vel0 = x[I_VEL]
+    q_sup = step_pneumatics(x, cmd, k, work, jac)
+    vol = work[0:NN]
+    tn = work[NN : 2 * NN]
     # 4. mechanics with the updated pressures
     _vol_temps(x, pos0, k.prv_vol, k.tube_vol, k.vd_a, k.vd_b, k.area_a, k.area_b, k.pos_min, k.pos_max,
                k.heat_on, k.t_atm, vol, tn)
