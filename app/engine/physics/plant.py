@@ -548,8 +548,8 @@ def step_pneumatics(x: np.ndarray, cmd: np.ndarray, k: Any, work: np.ndarray, ja
 
     The first part of :func:`step`, with the vane held where ``x`` has it:
     the log replay of the gap diagnosis moves the vane along the measured
-    angle itself, and the mechanics it would overwrite are a quarter of a
-    substep's time.
+    angle itself, and the mechanics it would overwrite are a fifth of a
+    replayed substep's time.
 
     Args:
         x: State vector (NX), modified in place (not position or speed).
