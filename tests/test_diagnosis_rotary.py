@@ -38,6 +38,23 @@ def test_protocol_logs_are_in_the_station_format(tmp_path: Path) -> None:
     assert sorted(e.name for e in calib) == ["hold_closed-1", "prv_steps-1"]
 
 
+def test_parameter_sets_that_replay_alike_are_replayed_once_per_log(nominal_logs: list,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """A torque-side candidate's grid (inertia here) leaves the pneumatic network alone: its points
+    share one replay per log, in one batch and after it."""
+    fam = RotaryFamily()
+    preps = [fam.prepare(e) for e in nominal_logs[:3]]
+    calls: list[str] = []
+    real = fam._replay
+    monkeypatch.setattr(fam, "_replay", lambda p, x, eff: calls.append(p.name) or real(p, x, eff))
+    x = {p.name: p.x0 for p in fam.baseline()}
+    grid = [x | {"inertia.extra": v} for v in (0.0, 0.01, 0.02, 0.04)]
+    fam.prefetch(preps, grid, ("inertia",))
+    assert sorted(calls) == sorted(p.name for p in preps)
+    fam.prefetch(preps, [x | {"prv_c_scale": 1.1}, *grid], ("inertia",))  # only the new pneumatic point
+    assert len(calls) == 2 * len(preps)
+
+
 def test_replay_of_the_model_that_made_the_logs_is_near_the_floor(nominal_logs: list) -> None:
     """Replaying a log with the parameters that generated it: the pressures stay within the PRV's
     rest band (its hysteresis makes the exact chatter history-dependent) and the torque balance
