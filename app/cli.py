@@ -317,10 +317,9 @@ def _modbus_plant(args: argparse.Namespace) -> int:
     from app.engine.hardware.sim import SimulatedRig
     from app.engine.human import HumanProgram
     from app.engine.loop import WallClock
-
-    cfg = load_config(args.hardware) if args.hardware else HardwareConfig(backend="modbus")
     from app.engine.sim import Simulator
 
+    cfg = load_config(args.hardware) if args.hardware else HardwareConfig(backend="modbus")
     rig = SimulatedRig(WallClock(), period=1.0 / cfg.rate_hz)
     rig.set_program(HumanProgram.rest())
     # compile (or load) the plant before listening: a first request that waited for it would

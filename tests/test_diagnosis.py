@@ -335,21 +335,3 @@ def test_cwrr_diagnose_refuses_a_malformed_station_log(tmp_path: Path, capsys: p
     assert main(["diagnose", str(tmp_path)]) == 2
     assert "bad: time is not increasing at row 51" in capsys.readouterr().err
 
-
-def test_a_replay_the_fit_keeps_returning_to_outlives_the_lru_turnover() -> None:
-    """The reference point every candidate starts from stays cached after each one's grid has gone by."""
-    from app.engine.diagnosis.rotary import ReplayCache
-
-    c = ReplayCache(size=4, returning=2)
-    ref = ("ref",)
-    c.put(ref, np.zeros(1))
-    for i in range(5):  # a candidate's grid pushes the reference out of the LRU
-        c.put(("grid", i), np.ones(1))
-    assert ref not in c and ("grid", 0) not in c and ("grid", 4) in c
-    c.put(ref, np.zeros(1))  # replayed again: it came back, so it is kept apart from the LRU
-    for i in range(5, 20):
-        c.put(("grid", i), np.ones(1))
-    assert ref in c and c.get(ref) is not None and len(c) == 5
-    for i in range(3):  # the returning store is small and keeps its most recent keys
-        c.put(("grid", i), np.full(1, 2.0))
-    assert ref not in c and c.get(("grid", 2)) is not None

@@ -82,58 +82,6 @@ def _lru_put(cache: OrderedDict[tuple[Any, ...], np.ndarray], key: tuple[Any, ..
         cache.popitem(last=False)
 
 
-class ReplayCache:
-    """Replayed pressures of one log by parameter key: an LRU, and a few keys that came back.
-
-    A descent revisits its recent points, which the LRU keeps. A reference
-    point (the recalibrated baseline; the effect chosen in a greedy round) is
-    started from by every candidate, each after its own grid has pushed the
-    reference out of the LRU. A key replayed again after the LRU dropped it
-    goes to a small store of its own, which the LRU's turnover does not touch:
-    on the ten-minute bench 364 of 7052 replays (5.2 %) had been of two such
-    keys.
-
-    Args:
-        size: Entries the LRU keeps.
-        returning: Entries kept of keys that came back after eviction.
-        remembered: Keys of evicted entries remembered (keys only, a few floats each).
-    """
-
-    def __init__(self, size: int = 128, returning: int = 8, remembered: int = 4096) -> None:
-        self.size, self.returning, self.remembered = size, returning, remembered
-        self._lru: OrderedDict[tuple[Any, ...], np.ndarray] = OrderedDict()
-        self._back: OrderedDict[tuple[Any, ...], np.ndarray] = OrderedDict()
-        self._gone: OrderedDict[tuple[Any, ...], None] = OrderedDict()
-
-    def __contains__(self, key: tuple[Any, ...]) -> bool:
-        return key in self._lru or key in self._back
-
-    def __len__(self) -> int:
-        return len(self._lru) + len(self._back)
-
-    def get(self, key: tuple[Any, ...]) -> np.ndarray | None:
-        """The cached replay of ``key`` (None if not cached)."""
-        for store in (self._back, self._lru):
-            hit = store.get(key)
-            if hit is not None:
-                store.move_to_end(key)
-                return hit
-        return None
-
-    def put(self, key: tuple[Any, ...], value: np.ndarray) -> None:
-        """Keep ``value`` for ``key``."""
-        if key in self._gone:  # it was here before: a point the fit keeps returning to
-            del self._gone[key]
-            _lru_put(self._back, key, value, self.returning)
-            return
-        self._lru[key] = value
-        if len(self._lru) > self.size:
-            old, _ = self._lru.popitem(last=False)
-            self._gone[old] = None
-            if len(self._gone) > self.remembered:
-                self._gone.popitem(last=False)
-
-
 def _stuck(theta: np.ndarray, w: int) -> np.ndarray:
     """Samples around which the encoder did not move by a count for ±``w`` samples.
 
@@ -260,7 +208,7 @@ class RotaryPrep:
     regimes: dict[str, np.ndarray]
     inputs: dict[str, np.ndarray]
     stuck: np.ndarray
-    cache: ReplayCache = field(default_factory=lambda: ReplayCache(REPLAY_CACHE))
+    cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
     torque_cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
 
 
@@ -476,11 +424,11 @@ class RotaryFamily:
 
     def _pressures(self, prep: RotaryPrep, x: dict[str, float], effects: tuple[str, ...]) -> np.ndarray:
         key = self._key(x, effects)
-        hit = prep.cache.get(key)
+        hit = _lru_get(prep.cache, key)
         if hit is not None:
             return hit
         out = self._replay(prep, x, effects)
-        prep.cache.put(key, out)
+        _lru_put(prep.cache, key, out, REPLAY_CACHE)
         return out
 
     def prefetch(self, preps: list[RotaryPrep], xs: list[dict[str, float]], effects: tuple[str, ...]) -> None:
@@ -502,7 +450,7 @@ class RotaryFamily:
             return
         outs = list(_pool().map(lambda j: self._replay(j[0], j[1], effects), jobs.values()))
         for ((_, key), (p, _x)), o in zip(jobs.items(), outs, strict=True):
-            p.cache.put(key, o)
+            _lru_put(p.cache, key, o, REPLAY_CACHE)
 
     def frozen(self, effects: tuple[str, ...]) -> set[str]:
         """Parameters a candidate fit keeps at the reference's values (the last of ``effects`` is the one added).
