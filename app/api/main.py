@@ -7,7 +7,6 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
-from urllib.parse import urlsplit
 
 from fastapi import FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
@@ -60,8 +59,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 if settings.auth_enabled:
                     # viser has no sign-in: it listens on loopback and the gate holds the public port
                     plots = LivePlots(station, "127.0.0.1", 0, store)
-                    public = urlsplit(settings.viser_public_url).hostname if settings.viser_public_url else None
-                    gate = ViserGate(settings.host, settings.viser_port, plots.server.get_port(), Signer(), public)
+                    gate = ViserGate(settings.host, settings.viser_port, plots.server.get_port(), Signer(),
+                                     settings.viser_public_url or None)
                     try:
                         gate.start()
                     except BaseException:
@@ -148,11 +147,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             return ViserInfo(url=None, expires_s=None)
         host = request.url.hostname or settings.host
         gate: ViserGate | None = request.app.state.viser_gate
-        base = settings.viser_public_url.rstrip("/") or None
         if gate is not None:
-            return ViserInfo(url=gate.link(host, base), expires_s=TICKET_S)
-        if base:
-            return ViserInfo(url=base, expires_s=None)
+            return ViserInfo(url=gate.link(host), expires_s=TICKET_S)
+        if settings.viser_public_url:
+            return ViserInfo(url=settings.viser_public_url.rstrip("/"), expires_s=None)
         # the port viser bound: it takes the next free one when the asked one is in use
         return ViserInfo(url=f"http://{host}:{request.app.state.plots.server.get_port()}", expires_s=None)
 

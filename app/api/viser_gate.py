@@ -126,9 +126,12 @@ class ViserGate:
     """
 
     def __init__(self, host: str, port: int, upstream_port: int, signer: Signer,
-                 public_host: str | None = None) -> None:
+                 public_url: str | None = None) -> None:
         self.host, self.port, self.upstream_port, self.signer = host, port, upstream_port, signer
-        self.public_host = public_host  # the name browsers use when a proxy stands in front (its Origin)
+        # where browsers reach this gate when a port mapping or a proxy stands in front: links point
+        # there, and its host name is the Origin a proxied websocket arrives with
+        self.public_root = public_url.rstrip("/") if public_url else None
+        self.public_host = urlsplit(public_url).hostname if public_url else None
         self.cookie = f"cwrr_viser_{port}"  # cookies ignore ports: two stations on one host keep theirs apart
         self._loop = asyncio.new_event_loop()
         self._server: asyncio.Server | None = None
@@ -176,15 +179,13 @@ class ViserGate:
         if not self._thread.is_alive():
             self._loop.close()
 
-    def link(self, host: str, base: str | None = None) -> str:
-        """A fresh single-use link to the plots.
+    def link(self, host: str) -> str:
+        """A fresh single-use link to the plots, at the public address if one was given.
 
         Args:
             host: The host name the browser reached the dashboard by.
-            base: ``scheme://host[:port]`` browsers reach this gate at, when
-                not ``http://{host}:{port}`` (port mapping, reverse proxy).
         """
-        root = base.rstrip("/") if base else f"http://{host}:{self.port}"
+        root = self.public_root or f"http://{host}:{self.port}"
         return f"{root}/?ticket={self.signer.issue('ticket', TICKET_S)}"
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
