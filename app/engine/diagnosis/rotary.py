@@ -59,6 +59,12 @@ from app.engine.physics import plant as pl
 # (the true model's torque error over the protocol fell from 0.009 to 0.005 N·m RMS)
 STUCK_WINDOW_S = 0.005
 EDGE_S = 0.1  # zero-phase filter transients at each end of a log, left out of the torque channel [s]
+# predictions are scored on every k-th sample of a faster log, k = round(rate / this) [Hz]: the
+# station's HIL rate (SPEC: f_s = 200 Hz), at which the significance thresholds were set. ΔBIC
+# counts samples, so unscored it would call an effect 2.5× more significant in a 500 Hz log than
+# in a 200 Hz one of the same run, and least squares would carry 2.5× the rows. The replay
+# still takes every command and angle sample; the torque balance is low-passed at 10 Hz first
+SCORE_RATE_HZ = 200.0
 _PNEUMATIC_BASE = ("prv_c_scale", "dcv_c_scale", "dead_volume_scale")
 _PNEUMATIC_EFFECTS = ("vane_leakage", "external_leakage", "heat_transfer", "tube_dynamics", "supply_droop",
                       "valve_dynamics")
@@ -103,7 +109,7 @@ def _pool() -> ThreadPoolExecutor:
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def replay_pneumatics(k: Any, cmds: np.ndarray, theta: np.ndarray, omega: np.ndarray, x0: np.ndarray,
-                      n_sub: int, out: np.ndarray) -> None:
+                      n_sub: int, stride: int, out: np.ndarray) -> None:
     """Step the pneumatic network along a measured motion.
 
     Args:
@@ -113,7 +119,8 @@ def replay_pneumatics(k: Any, cmds: np.ndarray, theta: np.ndarray, omega: np.nda
         omega: (n,) vane speed [rad/s] at the samples.
         x0: Initial state (copied).
         n_sub: Substeps per sample.
-        out: (n, 3) written: P_a, P_b, P_s [bar abs] at the samples.
+        stride: Pressures are read at every ``stride``-th sample only (the scored ones).
+        out: (⌈n/stride⌉, 3) written: P_a, P_b, P_s [bar abs] at those samples.
     """
     x = x0.copy()
     n = cmds.shape[0]
@@ -122,12 +129,14 @@ def replay_pneumatics(k: Any, cmds: np.ndarray, theta: np.ndarray, omega: np.nda
     cmd = np.zeros(pl.NU)
     for i in range(n):
         # read the pressures at the measured angle, not where the last substep's mechanics left it
-        x[pl.I_POS] = theta[i]
-        x[pl.I_VEL] = omega[i]
-        pa, pb = pl.chamber_pressures(x, k)
-        out[i, 0] = pa / BAR
-        out[i, 1] = pb / BAR
-        out[i, 2] = x[pl.I_PS] / BAR
+        if i % stride == 0:
+            x[pl.I_POS] = theta[i]
+            x[pl.I_VEL] = omega[i]
+            pa, pb = pl.chamber_pressures(x, k)
+            r = i // stride
+            out[r, 0] = pa / BAR
+            out[r, 1] = pb / BAR
+            out[r, 2] = x[pl.I_PS] / BAR
         for c in range(4):
             cmd[c] = cmds[i, c]
         j1 = i + 1 if i + 1 < n else i
@@ -208,6 +217,7 @@ class RotaryPrep:
     regimes: dict[str, np.ndarray]
     inputs: dict[str, np.ndarray]
     stuck: np.ndarray
+    keep: slice  # the scored samples (see SCORE_RATE_HZ)
     cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
     torque_cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
 
@@ -349,14 +359,17 @@ class RotaryFamily:
             "pressure ≤ 3 bar": pmax <= 3.0, "pressure > 3 bar": pmax > 3.0,
         }
         inputs = {"z_a": cmds[:, 0], "z_b": cmds[:, 1], "u_a": cmds[:, 2], "u_b": cmds[:, 3], "omega": omega}
+        keep = slice(0, None, max(1, int(round(1.0 / (dt * SCORE_RATE_HZ)))))
         return RotaryPrep(exp.name, dt, cmds, np.ascontiguousarray(ch["theta"]), np.ascontiguousarray(omega), acc,
                           {c: ch[c] for c in ("p_a", "p_b", "p_s")}, tq_f, pa_f, pb_f,
                           np.asarray(ch["torque"], dtype=float), omega_fr,
-                          ps0, noise, (b, a), regimes, inputs, still)
+                          ps0, noise, (b, a), {k: v[keep] for k, v in regimes.items()},
+                          {k: v[keep] for k, v in inputs.items()}, still, keep)
 
     def measured(self, prep: RotaryPrep) -> dict[str, np.ndarray]:
-        return {"p_a": prep.p_meas["p_a"], "p_b": prep.p_meas["p_b"], "p_s": prep.p_meas["p_s"],
-                "torque": prep.torque_f}
+        k = prep.keep
+        return {"p_a": prep.p_meas["p_a"][k], "p_b": prep.p_meas["p_b"][k], "p_s": prep.p_meas["p_s"][k],
+                "torque": prep.torque_f[k]}
 
     def noise(self, prep: RotaryPrep) -> dict[str, float]:
         return dict(prep.noise)
@@ -418,8 +431,9 @@ class RotaryFamily:
         x0[pl.I_UA], x0[pl.I_UB] = prep.cmds[0, 2], prep.cmds[0, 3]
         x0[pl.I_ZA], x0[pl.I_ZB] = prep.cmds[0, 0], prep.cmds[0, 1]
         n_sub = max(1, int(round(prep.dt / k.h)))
-        out = np.empty((prep.cmds.shape[0], 3))
-        replay_pneumatics(k, prep.cmds, prep.theta, prep.omega, x0, n_sub, out)
+        stride = prep.keep.step or 1
+        out = np.empty((-(-prep.cmds.shape[0] // stride), 3))
+        replay_pneumatics(k, prep.cmds, prep.theta, prep.omega, x0, n_sub, stride, out)
         return out
 
     def _pressures(self, prep: RotaryPrep, x: dict[str, float], effects: tuple[str, ...]) -> np.ndarray:
@@ -492,7 +506,7 @@ class RotaryFamily:
         bt = x["sensor_bias.torque_nm"] if bias else 0.0
         # the supply's level is the shop regulator's setting on the day, a per-log constant
         # no candidate is about: profiled out (its least-squares value), only its variation is scored
-        ps = sim[:, 2] + float(np.mean(prep.p_meas["p_s"] - sim[:, 2]))
+        ps = sim[:, 2] + float(np.mean(prep.p_meas["p_s"][prep.keep] - sim[:, 2]))
         return {"p_a": sim[:, 0] * ga + ba, "p_b": sim[:, 1] * gb + bb, "p_s": ps,
                 "torque": self._torque(prep, x, effects, ga, gb, ba, bb, bt)}
 
@@ -528,7 +542,7 @@ class RotaryFamily:
         friction_torque(prep.omega_fr, prep.stuck, need, np.minimum(pa, pb), fr, float(self.nominal.friction.shape_j),
                         lug, s0, s1, prep.dt, tf)
         tf = filtfilt(*prep.ba, tf)
-        torque = j * prep.acc - tp + tf + bt
+        torque = np.ascontiguousarray((j * prep.acc - tp + tf + bt)[prep.keep])
         torque.setflags(write=False)  # shared by every caller that asks with these parameters
         _lru_put(prep.torque_cache, key, torque, TORQUE_CACHE)
         return torque
