@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from app.engine.diagnosis.core import fit
 from app.engine.diagnosis.logs import LogFormatError, read_logdir
 from app.engine.diagnosis.protocol import PREROLL_S, VISIBLE, effect_experiments, run_protocol
 from app.engine.diagnosis.rotary import RotaryFamily
@@ -53,6 +54,19 @@ def test_parameter_sets_that_replay_alike_are_replayed_once_per_log(nominal_logs
     assert sorted(calls) == sorted(p.name for p in preps)
     fam.prefetch(preps, [x | {"prv_c_scale": 1.1}, *grid], ("inertia",))  # only the new pneumatic point
     assert len(calls) == 2 * len(preps)
+
+
+def test_a_jacobians_points_are_replayed_in_one_batch(nominal_logs: list, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Least squares' difference quotients reach the replay as one batch per Jacobian (all cores
+    busy to its end), not one parameter set at a time."""
+    fam = RotaryFamily()
+    fam.max_nfev = 2
+    preps = [fam.prepare(e) for e in nominal_logs[:2]]
+    sizes: list[int] = []
+    real = fam.prefetch
+    monkeypatch.setattr(fam, "prefetch", lambda p, xs, eff: sizes.append(len(xs)) or real(p, xs, eff))
+    fit(fam, preps, ())
+    assert len(fam.baseline()) in sizes, sizes
 
 
 def test_replay_of_the_model_that_made_the_logs_is_near_the_floor(nominal_logs: list) -> None:

@@ -57,7 +57,7 @@ from __future__ import annotations
 import itertools
 import math
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -287,6 +287,8 @@ def raise_if_stopped(stop: threading.Event | None, what: str = "diagnosis") -> N
 def _weighted(r: np.ndarray, meas: np.ndarray) -> np.ndarray:
     """Residuals for least squares: an unscored sample (NaN measurement) weighs nothing, a
     prediction that failed (NaN where something was measured) weighs heavily."""
+    if np.isfinite(r).all():  # the common case, and then ``meas`` is finite too
+        return r
     return np.where(np.isfinite(meas), np.where(np.isfinite(r), r, 1e3), 0.0)
 
 
@@ -337,8 +339,18 @@ def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: 
     xs = [_to_x(specs, st) for st in starts or [start or {}]]
     x_best = xs[0] if len(xs) == 1 else min(xs, key=lambda x: float(np.sum(resid(x) ** 2)))
     tol = getattr(family, "tol", 1e-8)
+
+    def jacobian_columns(f: Callable[[np.ndarray], np.ndarray], xs: Iterable[np.ndarray]) -> list[np.ndarray]:
+        # least squares' difference quotients: one prefetch for all of a Jacobian's points (the
+        # replays of one log at a time had left a core idle at the end of each), then the same
+        # evaluations in the same order from the cache
+        pts = list(xs)
+        if prefetch is not None:
+            prefetch(preps, [fixed | _from_x(specs, x) for x in pts], effects)
+        return [f(x) for x in pts]
+
     sol = least_squares(resid, x_best, bounds=(lo, hi), x_scale="jac", max_nfev=max_nfev, diff_step=diff_step,
-                        ftol=tol, xtol=tol)
+                        ftol=tol, xtol=tol, workers=jacobian_columns)
     params = fixed | _from_x(specs, sol.x)
     params = {sp.name: params[sp.name] for sp in all_specs}
     jac = sol.jac
