@@ -38,7 +38,8 @@ replayed simulator): ``diff_step``, ``max_nfev`` and ``tol`` (its ``ftol`` and
 ``xtol``: a rippled cost gains nothing from steps finer than its ripple) for the descent,
 ``grid_points`` for a coarse grid start over each candidate's parameters,
 ``base_grid`` (a range per baseline parameter) for a grid start of the
-baseline's recalibration,
+baseline's recalibration and, over those that ``rebase`` names, of a
+candidate's fit after its own grid,
 ``frozen(effects)`` naming parameters the candidate being added cannot trade with
 (held at the reference fit), ``rebase(effects)`` naming baseline parameters
 whose reference values may stand in for the candidate being added (the grid
