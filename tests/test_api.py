@@ -34,6 +34,11 @@ def _wait(c: TestClient, cond: Any, timeout: float = 60.0) -> dict[str, Any]:
         time.sleep(0.1)
 
 
+def _assert_finished(st: dict[str, Any]) -> None:
+    # a paced run beside busy neighbours can latch a fault: say which (one CI run in many did)
+    assert st["last_run"]["status"] == "finished", (st["fault"], st.get("safety", {}).get("fault"))
+
+
 def test_state_machine_refuses_illegal_actions_with_409_and_why(client: TestClient) -> None:
     st = client.get("/api/engine").json()
     assert st["state"] == "disconnected" and st["allowed"] == ["connect"]
@@ -390,8 +395,7 @@ def test_the_cpr_rig_maps_the_valve_and_fits_the_flow_model(client: TestClient) 
     assert r.status_code == 200 and r.json()["status"]["progress"]["total_tests"] == 3
     assert client.get("/api/health").json()["rate_hz"] == 200.0
     st = _wait(client, lambda s: s["state"] == "idle", timeout=120.0)
-    # a paced run beside busy neighbours can latch a fault; say which (one CI run in many did)
-    assert st["last_run"]["status"] == "finished", (st["fault"], st.get("safety", {}).get("fault"))
+    _assert_finished(st)
     run = client.get(f"/api/runs/{r.json()['run_id']}").json()
     res = run["result"]
     assert run["kind"] == "dcv_flow" and res["tests"] == {"cpr": 2, "validation": 1}
@@ -418,8 +422,7 @@ def test_the_pid_autotuner_runs_on_the_rotary_rig_and_reports_beside_the_thesis(
     assert r.status_code == 200 and r.json()["status"]["progress"]["kind"] == "pid_tuning"
     assert client.get("/api/health").json()["rate_hz"] == 200.0
     st = _wait(client, lambda s: s["state"] == "idle", timeout=120.0)
-    # a paced run beside busy neighbours can latch a fault; say which (one CI run in many did)
-    assert st["last_run"]["status"] == "finished", (st["fault"], st.get("safety", {}).get("fault"))
+    _assert_finished(st)
     res = client.get(f"/api/runs/{r.json()['run_id']}").json()["result"]
     tuned = res["parameters"]
     assert tuned["crossover_rad_s"] == pytest.approx(6.0, rel=0.05)

@@ -334,4 +334,3 @@ def test_cwrr_diagnose_refuses_a_malformed_station_log(tmp_path: Path, capsys: p
     _write_raw(tmp_path, "bad", list(LOG_COLUMNS), rows, META)
     assert main(["diagnose", str(tmp_path)]) == 2
     assert "bad: time is not increasing at row 51" in capsys.readouterr().err
-

@@ -324,9 +324,12 @@ def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: 
     meas = [family.measured(p) for p in preps]
     prefetch = getattr(family, "prefetch", None)
 
+    def params_at(x: np.ndarray) -> dict[str, float]:
+        return fixed | _from_x(specs, x)
+
     def resid(x: np.ndarray) -> np.ndarray:
         raise_if_stopped(stop)
-        v = fixed | _from_x(specs, x)
+        v = params_at(x)
         if prefetch is not None:
             prefetch(preps, [v], effects)
         return _residuals(family, preps, meas, v, effects, scales)
@@ -347,12 +350,12 @@ def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: 
         # evaluations in the same order from the cache
         pts = list(xs)
         if prefetch is not None:
-            prefetch(preps, [fixed | _from_x(specs, x) for x in pts], effects)
+            prefetch(preps, [params_at(x) for x in pts], effects)
         return [f(x) for x in pts]
 
     sol = least_squares(resid, x_best, bounds=(lo, hi), x_scale="jac", max_nfev=max_nfev, diff_step=diff_step,
                         ftol=tol, xtol=tol, workers=jacobian_columns)
-    params = fixed | _from_x(specs, sol.x)
+    params = params_at(sol.x)
     params = {sp.name: params[sp.name] for sp in all_specs}
     jac = sol.jac
     # k counts the frozen parameters too: they were fitted on the same data by the reference
