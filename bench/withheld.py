@@ -7,7 +7,7 @@ object: the rank-1 rate, the true effects' held-out gap closure, the
 false-positive rate on effect-free rigs, and every case.
 
 Run: ``python bench/withheld.py [--seeds N] [--nulls N] [--seed0 S] [--null-seed0 S]`` inside the project
-environment (≈ 30 s per case on two cores).
+environment (≈ 20 s per case on two cores).
 
 ``--structural`` runs instead the rigs that differ from the diagnosed model
 in form (:data:`~app.engine.diagnosis.suite.STRUCTURAL`), each effect-free

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -162,6 +163,31 @@ def test_a_synthetic_leak_is_found_and_its_time_constant_recovered() -> None:
     flat = Experiment("tight", t, {}, {"p": 8.5 + rng.normal(0, 0.002, t.size)}, {"p_atm_bar": 1.01325})
     a, b = split_time(flat)
     assert diagnose(fam, [a], [b])["verdict"]["effects"] == []
+
+
+def test_the_diagnosis_keeps_blas_to_one_thread_and_gives_the_setting_back() -> None:
+    # OpenBLAS's threads spinning between calls had taken the replays' cores (core.diagnose)
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas_threads() -> set[int]:
+        return {int(i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas"}
+
+    seen: set[int] = set()
+
+    class Watched(ChamberFamily):
+        def predict(self, prep: Any, x: dict[str, float], effects: tuple[str, ...]) -> dict[str, np.ndarray]:
+            seen.update(blas_threads())
+            return super().predict(prep, x, effects)
+
+    t = np.arange(0, 60, 0.1)
+    exp = Experiment("tight", t, {}, {"p": 8.5 + np.random.default_rng(4).normal(0, 0.002, t.size)},
+                     {"p_atm_bar": 1.01325})
+    a, b = split_time(exp)
+    with threadpool_limits(limits=2, user_api="blas"):
+        assert blas_threads() == {2}
+        diagnose(Watched(), [a], [b])
+        assert blas_threads() == {2}
+    assert seen == {1}
 
 
 def test_the_noise_estimate_does_not_move_in_quantisation_steps() -> None:

@@ -65,6 +65,7 @@ from typing import Any, Protocol
 import numpy as np
 from scipy import stats
 from scipy.optimize import least_squares
+from threadpoolctl import threadpool_limits
 
 BIC_STRONG = 10.0  # Kass & Raftery (1995): ΔBIC > 10 is very strong evidence
 GC_MIN = 0.2
@@ -627,6 +628,14 @@ def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
              blocks: int | None = None, stop: threading.Event | None = None) -> dict[str, Any]:
     """The full diagnosis; returns the report (JSON-able).
 
+    BLAS runs on one thread meanwhile, process-wide (the server runs one
+    diagnosis at a time). The diagnosis's matrices are tall and thin
+    (least-squares Jacobians of ≈ 10⁵ rows by ≤ 10 columns), and OpenBLAS's
+    own threads, spinning between its calls, took the cores the replays run
+    on: on a two-core machine they had used half of the diagnosis's CPU
+    time. One thread also makes the report the same on any core count, since
+    a threaded BLAS sums in an order that depends on it.
+
     Args:
         family: The rig family.
         calib_exps: Experiments to fit on.
@@ -639,6 +648,14 @@ def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         stop: Once set, the diagnosis ends at its next cost evaluation with
             :class:`Cancelled` (a server shutting down must not leave it running).
     """
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _diagnose(family, calib_exps, held_exps, candidates, protocol, blocks, stop)
+
+
+def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
+              candidates: Sequence[str] | None = None, protocol: dict[str, list[str]] | None = None,
+              blocks: int | None = None, stop: threading.Event | None = None) -> dict[str, Any]:
+    """:func:`diagnose` with BLAS already limited."""
     if not calib_exps or not held_exps:
         raise ValueError("need at least one calibration and one held-out experiment")
     cands = list(candidates or family.candidates)
