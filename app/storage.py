@@ -14,6 +14,7 @@ the project). The two dialects differ only in placeholders and column types.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import math
 import sqlite3
@@ -131,7 +132,11 @@ class Store:
             path = sqlite_path(url)
             path.parent.mkdir(parents=True, exist_ok=True)
             self._db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None)
-            with self._lock:
+            # the same race on SQLite: in a loaded CI run, one of six stores opened together failed
+            # with "database is locked" while switching to WAL or making the schema, so (as with
+            # PostgreSQL's advisory lock above) the schema is made under a file lock
+            with self._lock, open(path.with_name(path.name + ".schema-lock"), "a") as gate:
+                fcntl.flock(gate, fcntl.LOCK_EX)  # released when the file closes
                 self._db.execute("PRAGMA journal_mode=WAL")
                 self._db.executescript(_TABLES.format(**_SQLITE))
                 cols = {r[1] for r in self._db.execute("PRAGMA table_info(runs)").fetchall()}
