@@ -484,44 +484,21 @@ def pneumatic_flows(
     return q_sup
 
 
-@njit(cache=True, error_model="numpy")
-def _solve_inplace(a: np.ndarray, b: np.ndarray) -> None:
-    """Solve a·x = b in place (b ← x) by Gaussian elimination without pivoting.
-
-    The matrix is I − h·(∂f/∂m): mass conservation makes ∂f/∂m a compartment
-    matrix (non-positive diagonal, non-negative off-diagonal, column sums
-    ≤ 0), so ``a`` is a column-diagonally-dominant M-matrix, for which
-    elimination without pivoting is stable. Zero multipliers (uncoupled
-    nodes) are skipped.
-    """
-    n = b.shape[0]
-    for c in range(n):
-        d = a[c, c]
-        for r in range(c + 1, n):
-            m = a[r, c]
-            if m != 0.0:
-                m /= d
-                for j in range(c + 1, n):
-                    a[r, j] -= m * a[c, j]
-                b[r] -= m * b[c]
-    for c in range(n - 1, -1, -1):
-        s = b[c]
-        for j in range(c + 1, n):
-            s -= a[c, j] * b[j]
-        b[c] = s / a[c, c]
-
-
 @njit(cache=True, inline="always", error_model="numpy")
 def _solve_network(jac: np.ndarray, dpdm: np.ndarray, h: float, f: np.ndarray, dm: np.ndarray) -> None:
     """The gas mass changes of one linearly implicit step: dm = (I − h·∂f/∂m)⁻¹·h·f.
 
-    What :func:`_solve_inplace` does to ``I + jac·diag(−h·dpdm)``, on only
-    the entries the network can make non-zero. Its edges form the path
-    O_a – T_a – C_a – C_b – T_b – O_b, with O_j – C_j instead of the tube
-    when the tubes are off; eliminating in node order fills in nothing
-    outside that pattern. The other entries are zeros that the dense
-    elimination only ever multiplies and subtracts, so this gives the same
-    result to the bit (``tests/test_physics_properties.py`` compares them).
+    Gaussian elimination of ``I + jac·diag(−h·dpdm)`` in node order without
+    pivoting: mass conservation makes ∂f/∂m a compartment matrix
+    (non-positive diagonal, non-negative off-diagonal, column sums ≤ 0), so
+    the matrix is a column-diagonally-dominant M-matrix, for which that is
+    stable. Only the entries the network can make non-zero are touched. Its
+    edges form the path O_a – T_a – C_a – C_b – T_b – O_b, with O_j – C_j
+    instead of the tube when the tubes are off; eliminating in node order
+    fills in nothing outside that pattern. The other entries are zeros that
+    a dense elimination only ever multiplies and subtracts, so this gives
+    its result to the bit (``tests/test_physics_properties.py`` compares
+    them); zero multipliers (uncoupled nodes) are skipped.
     A vane-leak replay of the gap diagnosis took 1.95 instead of 2.28 µs per
     sample with it.
 
