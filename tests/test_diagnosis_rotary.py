@@ -86,6 +86,47 @@ def test_replay_of_the_model_that_made_the_logs_is_near_the_floor(nominal_logs: 
             assert np.sqrt(np.mean((y["torque"] - m["torque"])[steady] ** 2)) < 0.05, e.name
 
 
+def test_a_replay_starts_from_what_the_sensors_read_whatever_was_replayed_before(nominal_logs: list) -> None:
+    """The chambers' first pressures are the first readings taken back through the sensors' gains
+    and offsets, so those are part of what a replay is cached under. Keyed on the flows and
+    volumes alone, a replay made at one gain had been served at another: the chambers then
+    started from another pressure, which a shut chamber keeps (by 0.015–0.04 bar RMS over a
+    protocol log for gains of 0.94 / 0.97), and a prediction depended on what was replayed first."""
+    fam = RotaryFamily()
+    log = next(e for e in nominal_logs if e.name.startswith("hold_closed"))
+    x = {p.name: p.x0 for p in fam.baseline()}
+    xs = [x | {"gain_a": 0.94, "gain_b": 1.03},
+          x | {"sensor_bias.p_a_bar": 0.1, "sensor_bias.p_b_bar": -0.05, "sensor_bias.torque_nm": 0.0}]
+    effects: list[tuple[str, ...]] = [(), ("sensor_bias",)]
+    used = fam.prepare(log)
+    fam.predict(used, x, ())  # the same flows and volumes, replayed at gain 1 and no offset first
+    for xi, eff in zip(xs, effects, strict=True):
+        fresh = fam.predict(fam.prepare(log), xi, eff)
+        again = fam.predict(used, xi, eff)
+        for c in ("p_a", "p_b"):
+            np.testing.assert_array_equal(again[c], fresh[c])
+            assert fresh[c][0] == pytest.approx(log.channels[c][0], abs=1e-9)  # the replay starts at the reading
+
+
+def test_the_sensors_gains_and_offsets_start_from_their_straight_line_fit() -> None:
+    """sensor_bias's descent also starts from the gains and offsets fitted as straight lines to the
+    replays (gain and offset trade along a narrow valley a descent from offset 0 does not leave):
+    from sensors at gain 1 and offset 0 that line lands near the rig's (offsets 0.05 bar and
+    0.1 N·m; the replay's own wander biases the line by ≈ 0.01 bar on half-length logs)."""
+    rig = perturbed(100).with_effects(sensor_bias=MAGNITUDES["sensor_bias"][0])
+    fam = RotaryFamily()
+    preps = [fam.prepare(e) for e in run_protocol(rig, seed=100, repetitions=1, scale=0.5)]
+    truth = true_params(rig, "sensor_bias")
+    start = truth | {"gain_a": 1.0, "gain_b": 1.0, "sensor_bias.p_a_bar": 0.0, "sensor_bias.p_b_bar": 0.0,
+                     "sensor_bias.torque_nm": 0.0}
+    lin = fam.linear_start(preps, start, ("sensor_bias",))
+    assert lin is not None
+    for name, tol in (("gain_a", 0.005), ("gain_b", 0.005), ("sensor_bias.p_a_bar", 0.015),
+                      ("sensor_bias.p_b_bar", 0.015), ("sensor_bias.torque_nm", 0.02)):
+        assert lin[name] == pytest.approx(truth[name], abs=tol), name
+    assert fam.linear_start(preps, start, ("inertia",)) is None  # nothing linear to profile
+
+
 def test_a_faster_log_is_scored_at_the_station_rate(monkeypatch: pytest.MonkeyPatch) -> None:
     """A 1 kHz log is replayed sample by sample but scored on every fifth sample (200 Hz, SPEC's HIL
     rate): least squares carries the rows of a 200 Hz log and ΔBIC counts what it would there; the
@@ -301,13 +342,28 @@ def test_a_slow_heat_exchange_is_fitted_from_the_nominal_dead_volumes() -> None:
     """At h·A = 0.05 W/K the baseline, recalibrated without heat exchange, puts the dead volumes
     at 0.72–0.80 × nominal (true 1.19 ×; 0.80 since the recalibration's grid start). A fit started
     there ended at h·A = 0.9 W/K and nothing was significant (GC 0.12); the grid and descent from
-    the nominal volumes (RotaryFamily.rebase) find the exchange (0.055 W/K) and name it."""
-    r = run_case("heat_transfer", 1, seed=100)
-    assert r["verdict"][:1] == ["heat_transfer"], (r["verdict"], r["rank"])
-    heat = next(x for x in r["report"]["ranking"] if x["effect"] == "heat_transfer")
+    the nominal volumes (RotaryFamily.rebase) find the exchange (0.055 W/K) and name it.
+
+    The dead volumes are not asserted: on these logs they trade with the exchange. Since replays
+    start from the readings at the fit's own gains, the fit ends at 0.80 × nominal with a
+    calibration cost below the truth's (0.92 ×), and its held-out GC is the true model's."""
+    eff, mag, seed = "heat_transfer", 1, 100
+    r = run_case(eff, mag, seed=seed)
+    assert r["verdict"][:1] == [eff], (r["verdict"], r["rank"])
+    heat = next(x for x in r["report"]["ranking"] if x["effect"] == eff)
     assert 0.025 < heat["params"]["heat_transfer.h_a"] < 0.1, heat["params"]
-    assert heat["baseline_params"]["dead_volume_scale"] > 0.85, heat["baseline_params"]
     assert r["gap_closure"] > 0.3
+    assert r["gap_closure"] > r["oracle_gap_closure"] - 0.05
+    rig = perturbed(seed).with_effects(heat_transfer=MAGNITUDES[eff][mag])
+    fam = RotaryFamily()
+    preps = [fam.prepare(e) for e in run_protocol(rig, seed=seed) if e.meta["repetition"] == 1]
+    meas, scales = [fam.measured(p) for p in preps], channel_scales(fam, preps)
+
+    def cost(x: dict[str, float]) -> float:
+        res = _residuals(fam, preps, meas, x, (eff,), scales)
+        return float(res @ res)
+
+    assert cost(heat["baseline_params"] | heat["params"]) < 1.1 * cost(true_params(rig, eff))
 
 
 @pytest.mark.slow

@@ -45,7 +45,10 @@ candidate's fit after its own grid,
 whose reference values may stand in for the candidate being added (the grid
 and a second descent start them from their nominal values; the fit with the
 lower calibration cost is kept), ``prefetch(preps, params_list, effects)`` to
-compute predictions for many parameter sets at once (e.g. on all cores), and
+compute predictions for many parameter sets at once (e.g. on all cores),
+``linear_start(preps, params, effects)`` giving, instead of the grid, a start for a
+candidate's descent with the parameters that enter the predictions (nearly)
+linearly at their least-squares values (or ``None``: the grid), and
 ``shared_scale``: groups of channels of one quantity normalised by one
 scale, the largest of their SDs (a regulated supply's own SD is its noise:
 normalised by it, its NRMSE is ≈ 1 whatever the model, and the ±1–2 %
@@ -551,7 +554,13 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
         g = fit(family, calib, effects, scales=scales, stop=stop, start=st)
         f = g if g.rss < f.rss else f
     else:
-        if points and new:
+        linear = getattr(family, "linear_start", None)
+        lin = linear(calib, off, effects) if linear is not None else None
+        if lin is not None:
+            # parameters that enter (nearly) linearly start from their least-squares values,
+            # which a coarse grid over their range only approximates
+            starts.append(lin)
+        elif points and new:
             raise_if_stopped(stop)
             starts.append(_grid_start(family, calib, effects, ref.params, new, points, scales))
         f = fit(family, calib, effects, scales=scales, starts=starts, stop=stop)

@@ -410,9 +410,18 @@ class RotaryFamily:
             kw |= {"lag_on": True, "tau_dcv": x["valve_dynamics.tau_dcv"], "tau_prv": x["valve_dynamics.tau_prv"]}
         return k._replace(**kw)
 
+    @staticmethod
+    def _sensors(x: dict[str, float], effects: tuple[str, ...]) -> tuple[float, float, float, float]:
+        """The pressure sensors' gains and offsets (a, b) [-, -, bar, bar]."""
+        bias = "sensor_bias" in effects
+        return (x.get("gain_a", 1.0), x.get("gain_b", 1.0), x["sensor_bias.p_a_bar"] if bias else 0.0,
+                x["sensor_bias.p_b_bar"] if bias else 0.0)
+
     def _key(self, x: dict[str, float], effects: tuple[str, ...]) -> tuple[Any, ...]:
         peff = tuple(e for e in effects if e in _PNEUMATIC_EFFECTS)
+        # the sensors set where the replay starts (the chambers' first pressures are what they read)
         return (peff, *(round(x[n], 12) for n in _PNEUMATIC_BASE),
+                *(round(v, 12) for v in self._sensors(x, effects)),
                 *(round(v, 12) for kk, v in sorted(x.items()) if kk.split(".")[0] in peff))
 
     def _replay(self, prep: RotaryPrep, x: dict[str, float], effects: tuple[str, ...]) -> np.ndarray:
@@ -422,8 +431,9 @@ class RotaryFamily:
         x0[pl.I_POS] = prep.theta[0]
         vol = np.empty(pl.NN)
         pl.vol_temps(x0, k, vol, np.empty(pl.NN))
-        pa0 = prep.p_meas["p_a"][0] / x.get("gain_a", 1.0) * BAR
-        pb0 = prep.p_meas["p_b"][0] / x.get("gain_b", 1.0) * BAR
+        ga, gb, ba, bb = self._sensors(x, effects)
+        pa0 = (prep.p_meas["p_a"][0] - ba) / ga * BAR
+        pb0 = (prep.p_meas["p_b"][0] - bb) / gb * BAR
         for i in range(pl.NN):
             x0[pl.I_M0 + i] = (pa0 if i < 3 else pb0) * vol[i] / (pl.R_AIR * self.nominal.t_atm)
         x0[pl.I_TCA] = x0[pl.I_TCB] = self.nominal.t_atm
@@ -470,13 +480,15 @@ class RotaryFamily:
         """Parameters a candidate fit keeps at the reference's values (the last of ``effects`` is the one added).
 
         An effect outside the pneumatic network (inertia, pre-sliding, sensor
-        offsets) leaves the replayed pressures unchanged, so the flow
-        capacities and dead volumes it cannot trade with stay put, and so do
-        the parameters of pneumatic effects the reference already has; their
-        replays stay cached. In a greedy round (a reference that already has
-        effects) the flow capacities and dead volumes stay at the reference's
-        values, recalibrated with the effects selected so far (stagewise: a
-        round replays a third less; the single-effect fits recalibrate them).
+        offsets) leaves the network alone, so the flow capacities and dead
+        volumes it cannot trade with stay put, and so do the parameters of
+        pneumatic effects the reference already has; inertia's and
+        pre-sliding's replays stay cached (sensor offsets, like the gains,
+        move where a replay starts: see :meth:`_key`). In a greedy round (a
+        reference that already has effects) the flow capacities and dead
+        volumes stay at the reference's values, recalibrated with the
+        effects selected so far (stagewise: a round replays a third less;
+        the single-effect fits recalibrate them).
         """
         if effects and effects[-1] not in _PNEUMATIC_EFFECTS:
             return set(_PNEUMATIC_BASE) | {p.name for e in effects[:-1] if e in _PNEUMATIC_EFFECTS
@@ -496,6 +508,44 @@ class RotaryFamily:
         nominal values: 0.055 W/K). See the core's optional family attributes.
         """
         return set(_PNEUMATIC_BASE) if effects and effects[-1] in _PNEUMATIC_EFFECTS else set()
+
+    def linear_start(self, preps: list[RotaryPrep], x: dict[str, float],
+                     effects: tuple[str, ...]) -> dict[str, float] | None:
+        """``x`` with the pressure sensors' gains and offsets at their least-squares values (or ``None``).
+
+        For the sensor_bias candidate only. A sensor's reading is gain ×
+        pressure + offset, and over the protocol's pressures the two trade
+        along a narrow valley: on a rig whose sensors read 0.05 bar high, the
+        baseline had taken the offset into the gain (1.017 for a true 1.004),
+        and a descent from offset 0 stayed there, at 1.9 × the truth's
+        calibration cost. Given ``x``'s replays, the pair is a straight-line
+        fit per chamber; the replay then starts from that pair's reading of
+        the first sample, so the line is a start for the descent, not its end.
+        """
+        if not effects or effects[-1] != "sensor_bias":
+            return None
+        specs = {p.name: p for p in (*self.baseline(), *self.effect("sensor_bias"))}
+
+        def bounded(name: str, v: float) -> float:
+            return float(np.clip(v, specs[name].lo, specs[name].hi))
+
+        out = dict(x)
+        self.prefetch(preps, [x], effects)
+        for i, ch in enumerate(("a", "b")):
+            sim = np.concatenate([self._pressures(p, x, effects)[:, i] for p in preps])
+            meas = np.concatenate([p.p_meas[f"p_{ch}"][p.keep] for p in preps])
+            ok = np.isfinite(sim) & np.isfinite(meas)
+            (g, b), *_ = np.linalg.lstsq(np.column_stack([sim[ok], np.ones(int(ok.sum()))]), meas[ok], rcond=None)
+            out[f"gain_{ch}"] = bounded(f"gain_{ch}", g)
+            out[f"sensor_bias.p_{ch}_bar"] = bounded(f"sensor_bias.p_{ch}_bar", b)
+        # the torque's offset adds to the balance while the vane moves; at standstill static
+        # friction takes up whatever the balance needs, offset included
+        out["sensor_bias.torque_nm"] = 0.0
+        res = [(p.torque_f[p.keep] - self.predict(p, out, effects)["torque"])[~p.stuck[p.keep]] for p in preps]
+        r = np.concatenate(res)
+        r = r[np.isfinite(r)]
+        out["sensor_bias.torque_nm"] = bounded("sensor_bias.torque_nm", float(np.mean(r))) if r.size else 0.0
+        return out
 
     def predict(self, prep: RotaryPrep, x: dict[str, float], effects: tuple[str, ...]) -> dict[str, np.ndarray]:
         sim = self._pressures(prep, x, effects)
