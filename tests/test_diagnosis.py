@@ -10,7 +10,16 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app.engine.diagnosis.core import Param, channel_spread, diagnose, fit, score, white_noise_sd
+from app.engine.diagnosis.core import (
+    Param,
+    _grid_start,
+    channel_scales,
+    channel_spread,
+    diagnose,
+    fit,
+    score,
+    white_noise_sd,
+)
 from app.engine.diagnosis.families import ChamberFamily, DriveFamily, split_time
 from app.engine.diagnosis.logs import (
     Experiment,
@@ -270,6 +279,29 @@ def test_a_base_grid_finds_the_lobe_a_descent_from_nominal_misses() -> None:
     found = diagnose(_GriddedTone(), exps[:1], exps[1:])["baseline"]["identifiability"]["params"]["a"]
     assert abs(stuck - 0.93) > 0.05, stuck
     assert found == pytest.approx(0.93, abs=0.002), found
+
+
+class _Decay(_Line):
+    """y = exp(−t/τ): one smooth valley, for what a grid start's refinements do."""
+
+    def predict(self, p: Experiment, x: dict[str, float], effects: tuple[str, ...]) -> dict[str, np.ndarray]:
+        return {"y": np.exp(-p.t / x["tau"])}
+
+
+@pytest.mark.parametrize("tau", [0.013, 0.1, 0.3])
+def test_each_refinement_of_a_grid_start_halves_its_step(tau: float) -> None:
+    # 5 values over τ ∈ [1 ms, 5 s] (8.4× apart); each refinement spans one step of the grid
+    # before it either side of the best, with steps half as long (2.9×, then 1.7×, 1.3×), so the
+    # start lies within half the last step of the valley's floor: 1.7×, 1.3×, 1.14× at most
+    t = np.arange(0.0, 2.0, 0.002)
+    exp = Experiment("decay", t, {"x": t}, {"y": np.exp(-t / tau)}, {})
+    fam = _Decay()
+    new = [Param("tau", 0.05, 1e-3, 5.0, "s", log=True)]
+    half_step = math.log(5e3) / 4 / 2
+    for rounds in (1, 2, 3):
+        half_step /= 2
+        start = _grid_start(fam, [exp], (), {}, new, 5, channel_scales(fam, [exp]), rounds)
+        assert abs(math.log(start["tau"] / tau)) <= half_step + 1e-9, (rounds, start["tau"])
 
 
 def test_samples_a_family_leaves_unscored_weigh_nothing() -> None:

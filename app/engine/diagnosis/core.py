@@ -36,7 +36,8 @@ add (each at most three bounded parameters, named as in
 Optional family attributes (for expensive, piecewise-smooth models such as a
 replayed simulator): ``diff_step``, ``max_nfev`` and ``tol`` (its ``ftol`` and
 ``xtol``: a rippled cost gains nothing from steps finer than its ripple) for the descent,
-``grid_points`` for a coarse grid start over each candidate's parameters,
+``grid_points`` for a coarse grid start over each candidate's parameters
+(``grid_refinements`` finer grids around its best, default 1),
 ``base_grid`` (a range per baseline parameter) for a grid start of the
 baseline's recalibration and, over those that ``rebase`` names, of a
 candidate's fit after its own grid,
@@ -532,6 +533,7 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     typ = ref.params | {p.name: p.x0 for p in new}
     starts = [off, typ] if off != typ else [off]
     points = int(getattr(family, "grid_points", 0))
+    rounds = int(getattr(family, "grid_refinements", 1))
     frozen: set[str] = getattr(family, "frozen", lambda _e: set())(effects)
     rebase = set(getattr(family, "rebase", lambda _e: set())(effects)) - frozen
     prior = ref.params | {s.name: s.x0 for s in family.baseline() if s.name in rebase}
@@ -543,7 +545,7 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
         # effect off or typical) keeps the fit never worse than it; the calibration cost decides.
         f = fit(family, calib, effects, scales=scales, starts=starts, stop=stop)
         raise_if_stopped(stop)
-        st = _grid_start(family, calib, effects, prior, new, points, scales)
+        st = _grid_start(family, calib, effects, prior, new, points, scales, rounds)
         # then the nominal values themselves move on the baseline's own grid, the effect where
         # its grid put it: from nominal the descent had left them there (a vane leak's fit kept
         # the flow capacities and dead volumes at 1.00 × nominal for a true 0.92 / 0.82 / 1.19 ×,
@@ -562,7 +564,7 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
             starts.append(lin)
         elif points and new:
             raise_if_stopped(stop)
-            starts.append(_grid_start(family, calib, effects, ref.params, new, points, scales))
+            starts.append(_grid_start(family, calib, effects, ref.params, new, points, scales, rounds))
         f = fit(family, calib, effects, scales=scales, starts=starts, stop=stop)
     sc = score(family, held, f, blocks)
     gc = gap_closure(ref_sc, sc, norm)
@@ -579,16 +581,18 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
 
 
 def _grid_start(family: Family, preps: list[Any], effects: tuple[str, ...], ref: dict[str, float],
-                new: list[Param], points: int, scales: dict[str, float]) -> dict[str, float]:
-    """The best point of a coarse grid over the new effect's parameters (the rest at ``ref``), refined once.
+                new: list[Param], points: int, scales: dict[str, float], rounds: int = 1) -> dict[str, float]:
+    """The best point of a coarse grid over the new effect's parameters (the rest at ``ref``), refined ``rounds`` times.
 
     A replayed simulator with switching elements has a rough cost surface on
     which finite-difference descent from one start stalls; a grid over at
     most three bounded parameters (``points``, ``⌈points/2⌉`` or 3 values per
-    axis) finds the right basin first. A second grid of as many points spans
-    one coarse step either side of the best: valleys narrower than a coarse
-    step (a supply droop's resistance and time constant trade along one,
-    a decade apart on the coarse grid) are found there.
+    axis) finds the right basin first. Each refinement is a grid of as many
+    points spanning one step of the previous grid either side of the best:
+    valleys narrower than a coarse step (a supply droop's resistance and time
+    constant trade along one, a decade apart on the coarse grid) are found
+    there. With 3 values per axis a refinement keeps the spacing, so it
+    recentres only once.
     """
     per = {1: points, 2: max(3, (points + 1) // 2)}.get(len(new), 3)
     meas = [family.measured(p) for p in preps]
@@ -610,18 +614,21 @@ def _grid_start(family: Family, preps: list[Any], effects: tuple[str, ...], ref:
     def axis(p: Param, lo: float, hi: float) -> np.ndarray:
         return np.exp(np.linspace(math.log(lo), math.log(hi), per)) if p.log else np.linspace(lo, hi, per)
 
-    coarse, coarse_cost = best_of([axis(p, p.lo, p.hi) for p in new])
-    fine = []
-    for p in new:
-        v = coarse[p.name]
-        if p.log:
-            step = (math.log(p.hi) - math.log(p.lo)) / (per - 1)
-            fine.append(axis(p, max(p.lo, v * math.exp(-step)), min(p.hi, v * math.exp(step))))
-        else:
-            step = (p.hi - p.lo) / (per - 1)
-            fine.append(axis(p, max(p.lo, v - step), min(p.hi, v + step)))
-    best, best_cost = best_of(fine)
-    return best if best_cost <= coarse_cost else coarse
+    best, best_cost = best_of([axis(p, p.lo, p.hi) for p in new])
+    steps = {p.name: ((math.log(p.hi) - math.log(p.lo)) if p.log else (p.hi - p.lo)) / (per - 1) for p in new}
+    for _ in range(rounds if per > 3 else 1):
+        fine = []
+        for p in new:
+            v, step = best[p.name], steps[p.name]
+            if p.log:
+                fine.append(axis(p, max(p.lo, v * math.exp(-step)), min(p.hi, v * math.exp(step))))
+            else:
+                fine.append(axis(p, max(p.lo, v - step), min(p.hi, v + step)))
+            steps[p.name] = 2.0 * step / (per - 1)
+        cand, cand_cost = best_of(fine)
+        if cand_cost <= best_cost:
+            best, best_cost = cand, cand_cost
+    return best
 
 
 def _rank_key(c: Candidate) -> tuple[bool, bool, float]:

@@ -251,6 +251,10 @@ class RotaryFamily:
     # cases: the same gap closures (±0.01) as with 1e-8, in 51–64 % of the time
     tol: float = 1e-4
     grid_points: int = 9  # see core._grid_start
+    # a second refinement of a candidate's grid (1.7× steps in a supply droop's time constant
+    # instead of 2.9×): the droop's fit on one withheld-effect rig had taken τ = 0.071 s for a
+    # true 0.1 s at twice the truth's calibration cost, and a spurious tube_dynamics closed the rest
+    grid_refinements: int = 2
     # the recalibration's own grid start (3 levels each, refined once; see core._grid_start): a
     # descent from nominal stalls near it (on three withheld-effect rigs the PRV capacity stayed
     # at 1.03–1.05 × nominal for a true 0.92 ×; from a grid's best the held-out error fell by
