@@ -553,11 +553,8 @@ class RotaryFamily:
 
     def predict(self, prep: RotaryPrep, x: dict[str, float], effects: tuple[str, ...]) -> dict[str, np.ndarray]:
         sim = self._pressures(prep, x, effects)
-        ga, gb = x.get("gain_a", 1.0), x.get("gain_b", 1.0)
-        bias = "sensor_bias" in effects
-        ba = x["sensor_bias.p_a_bar"] if bias else 0.0
-        bb = x["sensor_bias.p_b_bar"] if bias else 0.0
-        bt = x["sensor_bias.torque_nm"] if bias else 0.0
+        ga, gb, ba, bb = self._sensors(x, effects)
+        bt = x["sensor_bias.torque_nm"] if "sensor_bias" in effects else 0.0
         # the supply's level is the shop regulator's setting on the day, a per-log constant
         # no candidate is about: profiled out (its least-squares value), only its variation is scored
         ps = sim[:, 2] + float(np.mean(prep.p_meas["p_s"][prep.keep] - sim[:, 2]))
