@@ -444,7 +444,12 @@ class RotaryFamily:
         x0[pl.I_PS] = prep.ps0_bar * BAR
         x0[pl.I_UA], x0[pl.I_UB] = prep.cmds[0, 2], prep.cmds[0, 3]
         x0[pl.I_ZA], x0[pl.I_ZB] = prep.cmds[0, 0], prep.cmds[0, 1]
-        n_sub = max(1, int(round(prep.dt / k.h)))
+        # whole substeps per sample, none longer than the kernel's: a log at 2 kHz had advanced
+        # 1 ms per 0.5 ms sample (and one at 150 Hz 7 ms per 6.7 ms), ahead of the rig's clock
+        n_sub = max(1, math.ceil(prep.dt / k.h - 1e-9))
+        h = prep.dt / n_sub
+        if abs(h - k.h) > 1e-9 * k.h:
+            k = k._replace(h=h, prv_decay=math.exp(-h / self.nominal.prv.tau_spool))
         stride = prep.keep.step or 1
         out = np.empty((-(-prep.cmds.shape[0] // stride), 3))
         replay_pneumatics(k, prep.cmds, prep.theta, prep.omega, x0, n_sub, stride, out)
