@@ -71,6 +71,8 @@ from scipy import stats
 from scipy.optimize import least_squares
 from threadpoolctl import threadpool_limits
 
+from app.engine.diagnosis.logs import sampling_irregularity
+
 BIC_STRONG = 10.0  # Kass & Raftery (1995): ΔBIC > 10 is very strong evidence
 GC_MIN = 0.2
 N_BOOT = 300
@@ -741,7 +743,11 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     return {
         "family": family.name,
         "experiments": {"calibration": [getattr(e, "name", "?") for e in calib_exps],
-                        "held_out": [getattr(e, "name", "?") for e in held_exps]},
+                        "held_out": [getattr(e, "name", "?") for e in held_exps],
+                        # replayed on a uniform grid (see logs.on_uniform_grid): said, not hidden
+                        "irregular_sampling": {getattr(e, "name", "?"): info for e in (*calib_exps, *held_exps)
+                                               if hasattr(e, "t") and len(e.t) > 2
+                                               and (info := sampling_irregularity(np.asarray(e.t))) is not None}},
         "baseline": {"nrmse": dict(zip(chans, map(float, nr_base), strict=True)), "e": e_base,
                      "identifiability": base.identifiability()},
         "noise_floor": {"nrmse": dict(zip(chans, map(float, floor / spread), strict=True)), "e": e_floor},

@@ -24,7 +24,7 @@ from scipy.integrate import solve_ivp
 from scipy.signal import butter, filtfilt
 
 from app.engine.diagnosis.core import Param, white_noise_sd
-from app.engine.diagnosis.logs import Experiment
+from app.engine.diagnosis.logs import Experiment, on_uniform_grid, unscored_near_fills
 
 B_CRIT = 0.528  # critical pressure ratio of an ideal orifice (Eq 2.3), for an unknown leak path
 
@@ -170,11 +170,17 @@ class DriveFamily:
         raise ValueError(f"drive family: no effect {name!r}")
 
     def prepare(self, exp: Experiment) -> _DrivePrep:
+        exp = on_uniform_grid(exp)
         dt = exp.dt
         b, a = butter(4, self.cutoff_hz / (0.5 / dt))
         q = filtfilt(b, a, exp.channels["q"])
         f_raw = exp.channels["force"]
         f = filtfilt(b, a, f_raw)
+        # what a gap in the log made up is not scored, as far as the filter spreads it (1.5 periods
+        # of the cut-off; see logs.on_uniform_grid)
+        gap = unscored_near_fills(exp.filled, int(round(1.5 / (self.cutoff_hz * dt))))
+        if gap is not None:
+            f[gap] = np.nan
         v = np.gradient(q, dt)
         acc = np.gradient(v, dt)
         edge = int(round(0.2 / dt))

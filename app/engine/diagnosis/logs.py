@@ -60,6 +60,9 @@ class Experiment:
             adapters may have others).
         channels: Measured channels by name in the log's units.
         meta: The JSON metadata.
+        filled: Per sample, True where :func:`on_uniform_grid` made the
+            sample up (no measurement within half an interval); None: all
+            measured.
     """
 
     name: str
@@ -67,6 +70,7 @@ class Experiment:
     inputs: dict[str, np.ndarray] = field(default_factory=dict)
     channels: dict[str, np.ndarray] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
+    filled: np.ndarray | None = None  # per sample: made up by on_uniform_grid, not measured
 
     @property
     def dt(self) -> float:
@@ -77,6 +81,68 @@ class Experiment:
     def duration(self) -> float:
         """Length [s]."""
         return float(self.t[-1] - self.t[0])
+
+
+# a sample interval further than this from the median is irregular [fraction of the median]: a
+# paced engine's start jitter stays well inside it, a period it skipped after an overrun does not
+IRREGULAR = 0.1
+
+
+def sampling_irregularity(t: np.ndarray) -> dict[str, float] | None:
+    """How irregular a log's sampling is, or None if every interval is within :data:`IRREGULAR` of the median.
+
+    Returns:
+        ``irregular_intervals`` (count), ``largest_interval_s`` and
+        ``median_interval_s`` [s].
+    """
+    dt = np.diff(t)
+    med = float(np.median(dt))
+    off = np.abs(dt - med) > IRREGULAR * med
+    if not off.any():
+        return None
+    return {"irregular_intervals": int(off.sum()), "largest_interval_s": float(dt.max()), "median_interval_s": med}
+
+
+def on_uniform_grid(exp: Experiment) -> Experiment:
+    """The experiment on a uniform time grid at its median interval (itself if already uniform).
+
+    The replays and the zero-phase filters step sample by sample; a log
+    with gaps (a rig's engine skips the periods it overran) or uneven
+    intervals would put every later sample at the wrong time. Commands are
+    held from their sample to the next (as the engine applied them: a
+    skipped period changed nothing); measured channels are interpolated
+    linearly, and a grid point with no measurement within half an interval
+    is marked in ``filled`` so that the families leave it unscored.
+    """
+    if sampling_irregularity(exp.t) is None:
+        return exp
+    med = exp.dt
+    n = int(math.floor((exp.t[-1] - exp.t[0]) / med + 1e-6)) + 1
+    t = exp.t[0] + med * np.arange(n)
+    # rounding: a measurement a hair after its grid point belongs to it
+    held = np.clip(np.searchsorted(exp.t, t + 1e-3 * med, side="right") - 1, 0, len(exp.t) - 1)
+    nxt = np.minimum(held + 1, len(exp.t) - 1)
+    nearest = np.minimum(np.abs(exp.t[held] - t), np.abs(exp.t[nxt] - t))
+    return Experiment(exp.name, t, {k: np.asarray(v)[held] for k, v in exp.inputs.items()},
+                      {k: np.interp(t, exp.t, v) for k, v in exp.channels.items()}, dict(exp.meta),
+                      nearest > 0.5 * med)
+
+
+def unscored_near_fills(filled: np.ndarray | None, margin: int) -> np.ndarray | None:
+    """Samples of a filtered channel that a made-up stretch reaches (None if nothing was made up).
+
+    A single made-up sample between two measured ones is a straight line
+    over one interval, below a low-pass's resolution; a run of two or more
+    is not, and the filter spreads it ``margin`` samples either way.
+    """
+    if filled is None or not filled.any():
+        return None
+    out = filled.copy()
+    runs = np.flatnonzero(np.diff(np.concatenate(([0], filled.astype(np.int8), [0]))))
+    for a, b in zip(runs[::2], runs[1::2], strict=True):
+        if b - a >= 2:
+            out[max(0, a - margin): b + margin] = True
+    return out
 
 
 def check_frame(name: str, columns: list[str], data: np.ndarray, meta: dict[str, Any]) -> None:

@@ -50,7 +50,7 @@ from scipy.signal import butter, filtfilt
 
 from app.engine.constants import BAR
 from app.engine.diagnosis.core import Param, white_noise_sd
-from app.engine.diagnosis.logs import Experiment
+from app.engine.diagnosis.logs import Experiment, on_uniform_grid, unscored_near_fills
 from app.engine.params import EFFECT_NAMES, HumanParams, PlantParams, conductance_si
 from app.engine.physics import plant as pl
 
@@ -218,6 +218,7 @@ class RotaryPrep:
     inputs: dict[str, np.ndarray]
     stuck: np.ndarray
     keep: slice  # the scored samples (see SCORE_RATE_HZ)
+    filled: np.ndarray | None = None  # samples a gap in the log made up: pressures unscored there
     cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
     torque_cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
 
@@ -315,6 +316,7 @@ class RotaryFamily:
     def prepare(self, exp: Experiment) -> RotaryPrep:
         if exp.meta.get("rig", "rotary") != "rotary":
             raise ValueError(f"{exp.name}: rig = {exp.meta.get('rig')!r}; the rotary replay takes rotary logs")
+        exp = on_uniform_grid(exp)
         dt = exp.dt
         wn = min(0.9, self.cutoff_hz / (0.5 / dt))
         b, a = butter(4, wn)
@@ -328,6 +330,11 @@ class RotaryFamily:
         tq_f = filtfilt(b, a, ch["torque"])
         # the filter's start and end transients are the replay's, not the rig's: unscored
         tq_f[:edge] = tq_f[-edge:] = np.nan
+        # nor is what a gap in the log made up (see logs.on_uniform_grid): the pressures where it
+        # is, the filtered torque as far as the filter spreads a longer gap (its edge)
+        gap = unscored_near_fills(exp.filled, edge)
+        if gap is not None:
+            tq_f[gap] = np.nan
         pa_f = filtfilt(b, a, ch["p_a"])
         pb_f = filtfilt(b, a, ch["p_b"])
         cmds = np.ascontiguousarray(np.column_stack([exp.inputs[c] for c in ("z_a", "z_b", "u_a", "u_b")]))
@@ -368,12 +375,18 @@ class RotaryFamily:
                           {c: ch[c] for c in ("p_a", "p_b", "p_s")}, tq_f, pa_f, pb_f,
                           np.asarray(ch["torque"], dtype=float), omega_fr,
                           ps0, noise, (b, a), {k: v[keep] for k, v in regimes.items()},
-                          {k: v[keep] for k, v in inputs.items()}, still, keep)
+                          {k: v[keep] for k, v in inputs.items()}, still, keep,
+                          exp.filled if exp.filled is not None and exp.filled.any() else None)
 
     def measured(self, prep: RotaryPrep) -> dict[str, np.ndarray]:
         k = prep.keep
-        return {"p_a": prep.p_meas["p_a"][k], "p_b": prep.p_meas["p_b"][k], "p_s": prep.p_meas["p_s"][k],
-                "torque": prep.torque_f[k]}
+        out = {"p_a": prep.p_meas["p_a"][k], "p_b": prep.p_meas["p_b"][k], "p_s": prep.p_meas["p_s"][k],
+               "torque": prep.torque_f[k]}
+        if prep.filled is not None:
+            made_up = prep.filled[k]
+            for c in ("p_a", "p_b", "p_s"):
+                out[c] = np.where(made_up, np.nan, out[c])
+        return out
 
     def noise(self, prep: RotaryPrep) -> dict[str, float]:
         return dict(prep.noise)
