@@ -27,7 +27,7 @@ if __name__ == "__main__":
     ap.add_argument("--seeds", type=int, default=1, help="parameter-error/noise draws per effect and magnitude")
     ap.add_argument("--nulls", type=int, default=4, help="effect-free rigs")
     ap.add_argument("--effects", nargs="*", default=list(MAGNITUDES))
-    ap.add_argument("--seed0", type=int, default=100, help="first draw's seed (the README's tables: 100 and 101)")
+    ap.add_argument("--seed0", type=int, default=100, help="first draw's seed (docs/diagnosis.md's tables: 100, 101)")
     ap.add_argument("--null-seed0", type=int, default=200, help="first effect-free rig's seed")
     ap.add_argument("--structural", action="store_true", help="the form-mismatched rigs instead (see above)")
     a = ap.parse_args()

@@ -368,7 +368,7 @@ def test_fill_shut_shows_the_gas_cooling_that_a_dead_volume_cannot_mimic() -> No
 def test_withheld_heat_transfer_heads_the_ranking() -> None:
     """With fill_shut in the protocol the smaller heat-exchange magnitude (h·A = 0.3 W/K) ranks
     first (it was sixth without it: the dead volume absorbed it). On the full protocol it is
-    named, GC 0.70 against the true model's 0.69 (README; 0.52 and not significant before the
+    named, GC 0.70 against the true model's 0.69 (docs/diagnosis.md; 0.52 and not significant before the
     baseline's grid in pneumatic fits); the half-length protocol here keeps CI time down."""
     r = run_case("heat_transfer", 0, seed=100, scale=0.5)
     assert r["rank"] == 1, [x["effect"] for x in r["report"]["ranking"]]
@@ -411,7 +411,7 @@ def test_a_pneumatic_candidate_recalibrates_the_flows_and_volumes_it_restarts_fr
     0.92 / 0.82 / 1.19 × nominal. Restarted from nominal for the leak's grid, a descent had left the
     three at 1.00 × and the fit's calibration cost at 5.9 × the truth's (tube_dynamics then entered
     a greedy round to soak up the rest). The baseline's grid over the three, run after the
-    effect's, moves them: 2.6 × the truth's cost (README, "Fitting on a replayed simulator")."""
+    effect's, moves them: 2.6 × the truth's cost (docs/diagnosis.md, "Fitting on a replayed simulator")."""
     rig = perturbed(100).with_effects(vane_leakage=MAGNITUDES["vane_leakage"][1])
     exps = run_protocol(rig, seed=100)
     calib = [e for e in exps if e.meta["repetition"] == 1]

@@ -465,8 +465,8 @@ def test_calibrating_the_simulator_is_refused_with_the_reason(tmp_path: Path) ->
         assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "what"
 
 
-def test_the_readme_example_configuration_is_valid(tmp_path: Path) -> None:
-    text = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+def test_the_documented_example_configuration_is_valid(tmp_path: Path) -> None:
+    text = (Path(__file__).resolve().parent.parent / "docs" / "hardware.md").read_text()
     block = text.split("```yaml\n", 1)[1].split("```", 1)[0]
     (tmp_path / "hw.yaml").write_text(block)
     cfg = load_config(tmp_path / "hw.yaml")
