@@ -351,6 +351,12 @@ def _diagnose(args: argparse.Namespace) -> int:
               + (f" (confusable with {', '.join(v['confusable_with'])})" if v["confusable_with"] else "")
               + f"; E {r['how_far']['e_before']:.3g} → {r['how_far']['e_after']:.3g} "
               f"(floor {r['how_far']['e_floor']:.3g})")
+        uneven = r["experiments"].get("irregular_sampling", {})
+        if uneven:
+            print("  sampled unevenly (replayed on their own clock, samples missing from a log not scored): "
+                  + ", ".join(f"{n} ({u['irregular_intervals']} intervals off the median "
+                              f"{1e3 * u['median_interval_s']:.3g} ms, "
+                              f"the longest {1e3 * u['largest_interval_s']:.3g} ms)" for n, u in uneven.items()))
     return 0
 
 

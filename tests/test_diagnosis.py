@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -416,6 +417,26 @@ def test_cwrr_diagnose_writes_the_report_contract(tmp_path: Path, capsys: pytest
     assert r["verdict"]["effects"] == ["inertia", "sensor_bias"] and r["verdict"]["confusable_with"] == []
     assert r["where"][0]["channel"] == "force" and "regimes" in r["where"][0]
     assert r["experiments"]["held_out"] == ["DATA_EMPS_PULSES"]
+
+
+def test_cwrr_diagnose_says_which_logs_were_sampled_unevenly(tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """The aluminium chamber's record has one 267 ms interval among its 100 ms ones; Prusa's has none."""
+    from app.cli import main
+
+    for name in ("Aluminium", "Prusa"):
+        (tmp_path / name).mkdir()
+        shutil.copy(REF / "chamber_leak" / f"{name}.csv", tmp_path / name)
+        out = tmp_path / f"{name}.json"
+        assert main(["diagnose", str(tmp_path / name), "--json", str(out)]) == 0
+        said = capsys.readouterr().out
+        uneven = json.loads(out.read_text())["reports"][name]["experiments"]["irregular_sampling"]
+        if name == "Aluminium":
+            assert "sampled unevenly" in said and "the longest 267 ms" in said
+            assert list(uneven) == [f"{name}[calibration]"]
+            assert uneven[f"{name}[calibration]"]["irregular_intervals"] == 1
+        else:
+            assert "sampled unevenly" not in said and uneven == {}
 
 
 def test_cwrr_diagnose_refuses_a_malformed_station_log(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
