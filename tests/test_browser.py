@@ -334,6 +334,24 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     page.goto(base)
     expect(page.locator("#runs tbody")).to_contain_text("Imported log isotonic-2")
     expect(page.locator("#runs tbody")).to_contain_text("Gap diagnosis")
+    # the protocol on the connected (simulated) rig from the page: the engine runs it, the prompts
+    # show, and its experiments' runs are diagnosed
+    with urllib.request.urlopen(base + "/api/engine", timeout=10) as r:
+        if json.loads(r.read())["state"] == "disconnected":
+            urllib.request.urlopen(urllib.request.Request(base + "/api/engine/connect", method="POST"), timeout=10)
+    page.goto(base + "/static/diagnosis.html")
+    page.select_option("#src", "rig")
+    expect(page.locator("#rkinds input")).to_have_count(6)  # the open-loop experiments; isotonic is a workout
+    for box in page.locator("#rkinds input").all():
+        if box.get_attribute("value") != "hold_closed":
+            box.uncheck()
+    page.fill("#rscale", "0.2")
+    page.click("#go")
+    expect(page.locator("#msg")).to_contain_text("hold_closed, repetition", timeout=15_000)
+    expect(page.locator("#rstop")).to_be_visible()
+    expect(page.locator("#msg")).to_contain_text("diagnosis", timeout=60_000)
+    expect(page.locator("#verdict")).not_to_have_text("—", timeout=120_000)
+    expect(page.locator("#detail")).to_contain_text("Held out: hold_closed-2")
     assert not errors, errors
 
 

@@ -233,6 +233,25 @@ class RotaryIdentRequest(BaseModel):
     seed: int = Field(0, ge=0, le=2**31 - 1)
 
 
+class ProtocolRunRequest(BaseModel):
+    """The diagnosis protocol on the connected rotary rig (issue 6 §6), through the engine like a workout.
+
+    Attributes:
+        repetitions: Runs of every experiment (the last one of each is held out).
+        scale: Duration factor (1 ≈ 70 s of logs per repetition; each experiment
+            also waits 1.5 s while the chambers reach its start pressure).
+        kinds: Open-loop experiments to run (default all six). The isotonic
+            experiment is a workout: run SC-1 with the Default controller.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    repetitions: int = Field(2, ge=1, le=3)
+    scale: float = Field(1.0, ge=0.2, le=10.0)
+    kinds: list[Literal["prv_steps", "dcv_steps", "hold_closed", "fill_shut", "friction_sweep", "sine_sweep"]] | None \
+        = Field(None, min_length=1, max_length=6)
+
+
 Triple = tuple[Literal["filling", "exhausting"], float, float]
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import bisect
 import enum
+import json
 import math
 import sys
 import threading
@@ -551,7 +552,7 @@ class Station:
 
     def estimate(self, procedure: Any, kind: str, fit: Callable[[Any], dict[str, Any]],
                  rig: str = "rotary", spec: dict[str, Any] | None = None,
-                 rate_hz: float | None = None) -> int | None:
+                 rate_hz: float | None = None, recorder: Any = None) -> int | None:
         """idle → identifying: run an identification procedure at its rate.
 
         Args:
@@ -562,6 +563,8 @@ class Station:
             spec: What was asked for (stored with the run).
             rate_hz: Loop rate [Hz]; default 500 on the rotary rig (thesis
                 4.2.1), 200 on the others (4.2.2).
+            recorder: Receives every period's log row while the procedure
+                runs (the diagnosis protocol's logs).
         """
         with self._lock:
             self.require("estimate", rig)
@@ -577,8 +580,50 @@ class Station:
                 if self.sink else None
             self.supervisor.job = procedure
             self._start_engine(rate_hz or (ROTARY_IDENT_RATE_HZ if rig == "rotary" else LINEAR_IDENT_RATE_HZ))
+            assert self.engine is not None
+            self.engine.recorder = recorder
             self._state = State.IDENTIFYING
             return self._run_id
+
+    def run_protocol(self, repetitions: int = 2, scale: float = 1.0, kinds: list[str] | None = None) -> int | None:
+        """idle → identifying: the diagnosis protocol's open-loop experiments on the connected rotary rig.
+
+        Each experiment's log is stored as a run of kind ``protocol`` once it
+        ran to its end (also when a fault stops the protocol later); the
+        protocol's own run lists them (``result.run_ids``: what a diagnosis
+        takes). See :mod:`app.engine.diagnosis.rig_protocol`.
+
+        Raises:
+            ValueError: A bad argument, named (nothing moves).
+            TransitionError: Not idle, or not the rotary rig.
+        """
+        from app.engine.diagnosis.rig_protocol import ProtocolProcedure
+
+        with self._lock:
+            self.require("estimate", "rotary")
+            assert self.backend is not None
+            outdir = self.data_dir / "runs" / (time.strftime("protocol-%Y%m%d-%H%M%S")
+                                               + f"-{int(time.time() * 1e3) % 1000:03d}")
+            proc = ProtocolProcedure(outdir, repetitions, scale, kinds, rate_hz=self.rate_hz,
+                                     backend=self.backend.name, set_program=getattr(self.backend, "set_program", None))
+            spec = {"repetitions": repetitions, "scale": scale, "kinds": proc.kinds}
+            sink = self.sink
+
+            def store_logs(p: ProtocolProcedure) -> dict[str, Any]:
+                logs = []
+                for csv in p.finish_logs():
+                    meta = json.loads(csv.with_suffix(".json").read_text(encoding="utf-8"))
+                    rid = sink.run_started("protocol", {"experiment": meta["experiment"],
+                                                        "repetition": meta["repetition"], "log": csv.stem},
+                                           str(csv)) if sink else None
+                    if sink is not None and rid is not None:
+                        sink.run_finished(rid, "complete", None, {"log": csv.stem})
+                    logs.append({"name": csv.stem, "run_id": rid})
+                return {"log_dir": str(outdir), "logs": logs,
+                        "run_ids": [g["run_id"] for g in logs if g["run_id"] is not None]}
+
+            return self.estimate(proc, "diagnosis_protocol", store_logs, rig="rotary", spec=spec,
+                                 rate_hz=self.rate_hz, recorder=proc)
 
     def stop(self) -> None:
         """running/identifying → stopping → idle: end the work early, keeping what was recorded."""
@@ -865,7 +910,15 @@ class Station:
         """A fault ended the identification: store what it had, leave the engine writing safe outputs."""
         proc = self._proc
         proc.cancel()
-        self._record_procedure(status, {"progress": proc.progress.as_dict(), "fault": self._fault_detail()})
+        result: dict[str, Any] = {"progress": proc.progress.as_dict(), "fault": self._fault_detail()}
+        if getattr(proc, "fit_on_abort", False):  # what ran to its end is still good (the protocol's logs)
+            if self.engine is not None and self.engine.recorder is proc:
+                self.engine.recorder = None
+            try:
+                result |= self._proc_fit(proc)
+            except Exception as exc:
+                result["error"] = f"{type(exc).__name__}: {exc}"
+        self._record_procedure(status, result)
 
     def _record_procedure(self, status: str, result: dict[str, Any]) -> None:
         """Store how the procedure ended and take it off the loop."""
@@ -874,6 +927,8 @@ class Station:
         self.last_run = {"run_id": self._run_id, "status": status, "result": result}
         assert self.supervisor is not None
         self.supervisor.job = None
+        if self.engine is not None and self.engine.recorder is self._proc:
+            self.engine.recorder = None
         self._proc = None
 
     def _finish_procedure(self) -> None:

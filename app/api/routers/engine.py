@@ -20,6 +20,7 @@ from app.api.models import (
     LinearIdentRequest,
     LiveData,
     PIDTuneRequest,
+    ProtocolRunRequest,
     RotaryIdentRequest,
     RunRequest,
     Started,
@@ -199,6 +200,20 @@ def _identify(station: StationDep, proc: Any, estimator: Any, rig: str, spec: di
         return _friction_result(p.data, estimator(with_ci=False).fit(p.data).params_)
 
     run_id = station.estimate(proc, f"{rig}_friction", fit, rig, spec)
+    return Started(run_id=run_id, status=EngineStatus(**station.status()))
+
+
+@router.post("/engine/protocol", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
+             summary="idle → identifying: the diagnosis protocol's experiments on the connected rotary rig")
+def run_protocol(req: ProtocolRunRequest, station: StationDep) -> Started:
+    """Runs the open-loop experiments of ``GET /api/diagnoses/protocol`` through the engine on the rig
+    (or the simulated one), at the station's rate; the progress says what the person at the handle should
+    do. Each experiment that runs to its end is stored as a run of kind ``protocol`` with its log; the
+    protocol's own run lists them in ``result.run_ids``, what ``POST /api/diagnoses`` takes."""
+    try:
+        run_id = station.run_protocol(req.repetitions, req.scale, list(dict.fromkeys(req.kinds or [])) or None)
+    except ValueError as exc:
+        raise ParameterError(str(exc)) from None
     return Started(run_id=run_id, status=EngineStatus(**station.status()))
 
 

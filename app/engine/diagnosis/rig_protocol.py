@@ -1,0 +1,204 @@
+"""The diagnosis protocol run by the engine on the connected rig (issue 6 §6).
+
+:func:`~app.engine.diagnosis.protocol.run_protocol` runs the protocol on a
+simulator of its own. On a station the same open-loop experiments
+(:func:`~app.engine.diagnosis.protocol.schedules`) go through the engine
+loop instead — read → control → safety → write on whatever backend is
+connected — as a :class:`~app.engine.ident.procedure.Procedure`, so they run
+paced on the rig and faster than real time on a simulated clock. Each
+experiment becomes one log in the station's format, written as
+``KIND-REP.csv`` + ``.json``, with the commands the backend applied.
+
+Per experiment: the PRVs bring both chambers to its start pressure through
+the DCVs (:data:`PRESSURISE_S`, longer while a simulated user brings the
+handle back to neutral), then the log opens with :data:`~app.engine.diagnosis.protocol.PREROLL_S`
+at rest (PRVs holding that pressure, DCVs shut at 5 V) and the schedule's
+commands follow. The experiments that need the user (a sweep of the handle,
+the rocking) say so in the progress message; on the simulated rig the
+simulated user does it. The isotonic experiment is a closed-loop workout:
+run it as one (SC-1, Default controller) and diagnose its run beside these.
+
+The loop never touches the disk: it hands each period's row to a queue,
+and a writer thread opens, appends to (``fsync`` at least every 0.5 s) and
+closes the logs.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from app.engine.constants import BAR, P_ATM
+from app.engine.diagnosis.protocol import DESCRIPTION, PREROLL_S, VISIBLE, schedules
+from app.engine.hardware.base import SAFE_COMMAND, Command
+from app.engine.human import HumanProgram
+from app.engine.ident.procedure import Procedure, Script
+from app.engine.runlog import RunLogWriter
+
+OPEN_LOOP: tuple[str, ...] = tuple(k for k in VISIBLE if k != "isotonic")
+"""The protocol's open-loop experiments (the isotonic one is a workout)."""
+
+PRESSURISE_S = 1.5
+"""Both chambers at the experiment's start pressure before its log opens [s] (as a workout starts)."""
+
+_PROMPT = {
+    "friction_sweep": "please move the handle back and forth, slowly, then faster, then fast",
+    "sine_sweep": "please rock the handle to and fro, faster and faster",
+}
+
+
+class _LogWriter:
+    """The protocol's logs, written by a thread of their own (the control loop only enqueues)."""
+
+    def __init__(self) -> None:
+        self._q: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
+        self.done: list[Path] = []
+        self.error = ""
+        self._thread = threading.Thread(target=self._run, name="cwrr-protocol-logs", daemon=True)
+        self._thread.start()
+
+    def open(self, directory: Path, name: str, meta: dict[str, Any]) -> None:
+        self._q.put(("open", (directory, name, meta)))
+
+    def append(self, row: tuple[float, ...]) -> None:
+        self._q.put(("row", row))
+
+    def close(self, status: str) -> None:
+        self._q.put(("close", status))
+
+    def finish(self, timeout: float = 30.0) -> None:
+        """Write what is queued and stop the thread."""
+        self._q.put(("stop", None))
+        self._thread.join(timeout)
+
+    def _run(self) -> None:
+        w: RunLogWriter | None = None
+        while True:
+            what, arg = self._q.get()
+            try:
+                if what == "open":
+                    if w is not None:
+                        w.close("incomplete")
+                    w = RunLogWriter(*arg)
+                elif what == "row" and w is not None:
+                    w.append(arg)
+                elif what in ("close", "stop") and w is not None:
+                    w.close(arg if what == "close" else "incomplete")
+                    if arg == "complete":
+                        self.done.append(w.csv_path)
+                    w = None
+                if what == "stop":
+                    return
+            except OSError as exc:  # a full disk: stop logging, say so, let the rig be
+                self.error = f"{type(exc).__name__}: {exc}"
+                w = None
+
+
+class ProtocolProcedure(Procedure):
+    """The diagnosis protocol's open-loop experiments on the connected rig.
+
+    Also the engine's run recorder: :meth:`append` takes each period's row
+    (time, applied commands, measurements) into the current experiment's log.
+
+    Args:
+        outdir: Folder for the logs (created).
+        repetitions: Runs of every experiment, 1–3 (the last is the one held out).
+        scale: Duration factor, 0.2–10 (1 ≈ 70 s of open-loop logs per repetition).
+        kinds: Experiments to run (default all of :data:`OPEN_LOOP`).
+        rate_hz: The loop's rate [Hz] (the logs' sample rate).
+        p_atm_bar: Atmospheric pressure [bar abs] (the PRVs' zero).
+        backend: The backend's name (kept in each log's metadata).
+        set_program: The simulated user's program setter (None on a real rig).
+
+    Raises:
+        ValueError: A bad argument, named (nothing is created).
+    """
+
+    name = "diagnosis_protocol"
+    fit_on_abort = True  # a fault later on leaves the finished experiments' logs good
+
+    def __init__(self, outdir: Path | str, repetitions: int = 2, scale: float = 1.0,
+                 kinds: Sequence[str] | None = None, rate_hz: float = 200.0, p_atm_bar: float = P_ATM / BAR,
+                 backend: str = "sim", set_program: Callable[[HumanProgram], None] | None = None) -> None:
+        super().__init__(vent_s=0.5)
+        kinds = list(kinds) if kinds else list(OPEN_LOOP)
+        unknown = [k for k in kinds if k not in OPEN_LOOP]
+        if unknown:
+            hint = " (a closed-loop workout: run SC-1 with the Default controller)" if "isotonic" in unknown else ""
+            raise ValueError(f"kinds: no open-loop protocol experiment {', '.join(unknown)}{hint}; "
+                             f"known: {', '.join(OPEN_LOOP)}")
+        if not 1 <= repetitions <= 3:
+            raise ValueError(f"repetitions = {repetitions} must be 1–3")
+        if not 0.2 <= scale <= 10.0:
+            raise ValueError(f"scale = {scale} must be in 0.2–10")
+        self.outdir = Path(outdir)
+        self.repetitions = repetitions
+        self.scale = scale
+        self.kinds = kinds
+        self.rate_hz = rate_hz
+        self.p_atm_bar = p_atm_bar
+        self.backend = backend
+        self.set_program = set_program
+        self._logs: _LogWriter | None = None
+        self._logging = False
+
+    # ------------------------------------------------------------ the engine's recorder
+    def append(self, row: tuple[float, ...]) -> None:
+        """One period's row, into the log of the experiment under way (none between experiments)."""
+        if self._logging and self._logs is not None:
+            self._logs.append(row)
+
+    def finish_logs(self) -> list[Path]:
+        """Wait for the writer; the logs of the experiments that ran to their end (CSV paths)."""
+        logs = self._logs
+        if logs is None:
+            return []
+        logs.finish()
+        if logs.error:
+            raise OSError(f"the protocol's logs could not be written: {logs.error}")
+        return list(logs.done)
+
+    # ------------------------------------------------------------ the script
+    def script(self) -> Script:
+        logs = self._logs = _LogWriter()
+        plan = [(rep, s) for rep in range(self.repetitions) for s in schedules(rep, self.scale)
+                if s.name in self.kinds]
+        self.begin("diagnosis protocol", len(plan))
+        self.progress.total_tests = len(plan)
+        for rep, s in plan:
+            self.next_test()
+            what = _PROMPT.get(s.name, "please hold the handle still at neutral")
+            self.progress.message = (f"experiment {self.progress.k} of {self.progress.n}: {s.name}, repetition "
+                                     f"{rep + 1} — {DESCRIPTION[s.name]}; {what}")
+            z = s.pw_bar - self.p_atm_bar  # PRV static map P = z + P_atm (SPEC §3)
+            pressurise = PRESSURISE_S
+            if self.set_program is not None:  # the simulated user brings the handle back to neutral
+                theta = self.meas.theta
+                self.set_program(HumanProgram.move(theta, 0.0, self.meas.t))
+                pressurise = max(PRESSURISE_S, HumanProgram.move_time(theta, 0.0) + 0.5)
+            yield from self.hold(Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b), pressurise)
+            name = f"{s.name}-{rep + 1}"
+            meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": self.p_atm_bar,
+                    "working_pressure_bar": s.pw_bar, "experiment": s.name, "human": s.human,
+                    "repetition": rep + 1, "scale": self.scale, "backend": self.backend, "source": "station"}
+            logs.open(self.outdir, name, meta)
+            self._logging = True
+            t0 = self.meas.t
+            if self.set_program is not None:  # programs run on rig time, from the log's start
+                self.set_program(HumanProgram(s.program.t + t0, s.program.pos))
+            rest = Command(z, z, 5.0, 5.0)
+            try:
+                while (tt := self.meas.t - t0) < PREROLL_S + s.duration - 0.5 * self.dt:
+                    yield rest if tt < PREROLL_S - 1e-9 else Command(*s.commands(tt - PREROLL_S))
+            except GeneratorExit:  # cancelled or faulted mid-experiment: keep what was logged
+                self._logging = False
+                logs.close("incomplete")
+                raise
+            self._logging = False
+            logs.close("complete")
+            self.test_done()
+        if self.set_program is not None:
+            self.set_program(HumanProgram.move(self.meas.theta, 0.0, self.meas.t))

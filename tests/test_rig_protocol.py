@@ -1,0 +1,134 @@
+"""Issue 6 §6: the diagnosis protocol run by the station's engine on the connected rig (here the simulated one)."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from app.api.main import create_app
+from app.api.settings import Settings
+from app.engine.diagnosis.logs import read_log
+from app.engine.diagnosis.protocol import PREROLL_S
+from app.engine.diagnosis.rig_protocol import ProtocolProcedure
+from app.engine.diagnosis.run import diagnose_dir
+from app.engine.diagnosis.suite import MAGNITUDES
+from app.engine.hardware.sim import SimulatedRig
+from app.engine.ident.procedure import run_procedure
+from app.engine.loop import SimClock
+from app.engine.params import PlantParams
+
+
+def _run(outdir: Path, rig: PlantParams, **kw: Any) -> tuple[ProtocolProcedure, list[Path]]:
+    clock = SimClock()
+    backend = SimulatedRig(clock, rig, seed=5, period=0.005)
+    proc = ProtocolProcedure(outdir, set_program=backend.set_program, **kw)
+    run_procedure(proc, backend, clock, 200.0, recorder=proc)
+    return proc, proc.finish_logs()
+
+
+@pytest.mark.slow
+def test_the_protocol_through_the_engine_writes_station_logs_that_find_a_withheld_leak(tmp_path: Path) -> None:
+    """Through read → control → safety → write on a simulated rig with a chamber leak: one log per
+    experiment and repetition in the station's format, opening at rest (PRVs at the start pressure,
+    DCVs shut) for PREROLL_S, with the commands the backend applied; diagnosed, they name the leak."""
+    rig = PlantParams().with_effects(external_leakage=MAGNITUDES["external_leakage"][1])
+    proc, logs = _run(tmp_path, rig, repetitions=2, scale=0.4, kinds=["hold_closed", "fill_shut"])
+    assert proc.progress.state == "finished" and proc.progress.done_tests == 4
+    assert [p.stem for p in logs] == ["hold_closed-1", "fill_shut-1", "hold_closed-2", "fill_shut-2"]
+    for p in logs:
+        e = read_log(p)
+        assert e.meta["experiment"] == p.stem.split("-")[0] and e.meta["repetition"] == int(p.stem[-1])
+        assert e.meta["status"] == "complete" and e.meta["source"] == "station"
+        assert e.dt == pytest.approx(0.005, rel=1e-3)
+        rest = e.t < PREROLL_S - 1e-9
+        assert rest.sum() == round(PREROLL_S / 0.005)
+        assert np.all(e.inputs["u_a"][rest] == 5.0) and np.all(e.inputs["u_b"][rest] == 5.0)
+        assert np.all(e.inputs["z_a"][rest] == e.inputs["z_a"][0])
+        # the chambers reached the start pressure before the log opened
+        assert abs(e.channels["p_a"][0] - e.meta["working_pressure_bar"]) < 0.1
+    r = diagnose_dir(tmp_path)
+    assert r["verdict"]["effects"] == ["external_leakage"]
+    assert r["experiments"]["held_out"] == ["fill_shut-2", "hold_closed-2"]
+
+
+def test_a_cancelled_protocol_keeps_the_finished_logs_and_marks_the_cut_one(tmp_path: Path) -> None:
+    clock = SimClock()
+    backend = SimulatedRig(clock, PlantParams(), seed=1, period=0.005)
+    proc = ProtocolProcedure(tmp_path, repetitions=1, scale=0.3, kinds=["prv_steps", "dcv_steps"],
+                             set_program=backend.set_program)
+    from app.engine.loop import Engine
+
+    engine = Engine(backend, proc, clock, rate_hz=200.0, recorder=proc)
+    backend.activate()
+    while proc.progress.done_tests < 1 or clock.now() < 7.5:  # dcv_steps logging from ≈ 6.9 s
+        engine.run_for(0.1)
+    proc.cancel()
+    engine.run_for(1.0)
+    backend.deactivate()
+    assert proc.finished and proc.progress.state == "cancelled"
+    assert [p.stem for p in proc.finish_logs()] == ["prv_steps-1"]
+    cut = json.loads((tmp_path / "dcv_steps-1.json").read_text())
+    assert cut["status"] == "incomplete" and cut["rows"] > 0
+
+
+@pytest.mark.parametrize(("kw", "words"), [
+    ({"kinds": ["isotonic"]}, "closed-loop workout"),
+    ({"kinds": ["prv_step"]}, "no open-loop protocol experiment prv_step"),
+    ({"repetitions": 4}, "repetitions = 4"),
+    ({"scale": 0.1}, "scale = 0.1"),
+])
+def test_bad_protocol_arguments_are_refused_and_nothing_is_written(tmp_path: Path, kw: dict[str, Any],
+                                                                   words: str) -> None:
+    with pytest.raises(ValueError, match=words):
+        ProtocolProcedure(tmp_path / "out", **kw)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.fixture()
+def client(tmp_path: Path) -> Iterator[TestClient]:
+    app = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))
+    with TestClient(app) as c:
+        yield c
+
+
+def _wait(c: TestClient, cond: Any, timeout: float = 60.0) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout
+    while True:
+        st = c.get("/api/engine").json()
+        if cond(st) or time.monotonic() > deadline:
+            return st
+        time.sleep(0.1)
+
+
+def test_the_station_runs_the_protocol_and_a_diagnosis_takes_its_runs(client: TestClient) -> None:
+    """POST /api/engine/protocol on the paced station; the experiments are stored as runs whose ids
+    the protocol's run lists and a diagnosis accepts."""
+    assert client.post("/api/engine/protocol", json={}).status_code == 409  # not connected
+    client.post("/api/engine/connect")
+    r = client.post("/api/engine/protocol", json={"kinds": ["isotonic"]})
+    assert r.status_code == 422 and "isotonic" in json.dumps(r.json())
+    r = client.post("/api/engine/protocol", json={"kinds": ["hold_closed"], "repetitions": 2, "scale": 0.2})
+    assert r.status_code == 200 and r.json()["status"]["state"] == "identifying"
+    st = _wait(client, lambda s: s["state"] != "identifying", 60.0)
+    assert st["state"] == "idle", (st["fault"], st.get("safety", {}).get("fault"))
+    run = client.get(f"/api/runs/{r.json()['run_id']}").json()
+    assert run["kind"] == "diagnosis_protocol" and run["status"] == "finished", run
+    ids = run["result"]["run_ids"]
+    assert [g["name"] for g in run["result"]["logs"]] == ["hold_closed-1", "hold_closed-2"] and len(ids) == 2
+    listed = client.get("/api/runs", params={"kind": "protocol"}).json()
+    assert sorted(x["id"] for x in listed) == sorted(ids)
+    d = client.post("/api/diagnoses", json={"run_ids": ids})
+    assert d.status_code == 202, d.text
+    deadline = time.monotonic() + 120.0
+    while (rep := client.get(f"/api/runs/{d.json()['run_id']}").json())["status"] == "running":
+        assert time.monotonic() < deadline
+        time.sleep(0.5)
+    assert rep["status"] == "complete", rep
+    assert rep["result"]["experiments"]["held_out"] == ["hold_closed-2"]
