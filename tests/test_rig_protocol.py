@@ -108,14 +108,21 @@ def _wait(c: TestClient, cond: Any, timeout: float = 60.0) -> dict[str, Any]:
 
 
 def test_the_station_runs_the_protocol_and_a_diagnosis_takes_its_runs(client: TestClient) -> None:
-    """POST /api/engine/protocol on the paced station; the experiments are stored as runs whose ids
-    the protocol's run lists and a diagnosis accepts."""
+    """POST /api/engine/protocol on the paced station; the experiments are stored as runs as they end,
+    the protocol's run lists their ids, and a diagnosis accepts them."""
     assert client.post("/api/engine/protocol", json={}).status_code == 409  # not connected
     client.post("/api/engine/connect")
     r = client.post("/api/engine/protocol", json={"kinds": ["isotonic"]})
     assert r.status_code == 422 and "isotonic" in json.dumps(r.json())
     r = client.post("/api/engine/protocol", json={"kinds": ["hold_closed"], "repetitions": 2, "scale": 0.2})
     assert r.status_code == 200 and r.json()["status"]["state"] == "identifying"
+    # each experiment is stored as it ends, not when the protocol does (a crash keeps the finished ones)
+    deadline = time.monotonic() + 30.0
+    while not (early := client.get("/api/runs", params={"kind": "protocol"}).json()):
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    assert [x["spec"]["log"] for x in early] == ["hold_closed-1"]
+    assert client.get("/api/engine").json()["state"] == "identifying"
     st = _wait(client, lambda s: s["state"] != "identifying", 60.0)
     assert st["state"] == "idle", (st["fault"], st.get("safety", {}).get("fault"))
     run = client.get(f"/api/runs/{r.json()['run_id']}").json()

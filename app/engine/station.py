@@ -588,10 +588,10 @@ class Station:
     def run_protocol(self, repetitions: int = 2, scale: float = 1.0, kinds: list[str] | None = None) -> int | None:
         """idle → identifying: the diagnosis protocol's open-loop experiments on the connected rotary rig.
 
-        Each experiment's log is stored as a run of kind ``protocol`` once it
-        ran to its end (also when a fault stops the protocol later); the
-        protocol's own run lists them (``result.run_ids``: what a diagnosis
-        takes). See :mod:`app.engine.diagnosis.rig_protocol`.
+        Each experiment's log is stored as a run of kind ``protocol`` as soon
+        as it ran to its end (so a stop, a fault or a crash later keeps it);
+        the protocol's own run lists them (``result.run_ids``: what a
+        diagnosis takes). See :mod:`app.engine.diagnosis.rig_protocol`.
 
         Raises:
             ValueError: A bad argument, named (nothing moves).
@@ -604,22 +604,26 @@ class Station:
             assert self.backend is not None
             outdir = self.data_dir / "runs" / (time.strftime("protocol-%Y%m%d-%H%M%S")
                                                + f"-{int(time.time() * 1e3) % 1000:03d}")
-            proc = ProtocolProcedure(outdir, repetitions, scale, kinds, rate_hz=self.rate_hz,
-                                     backend=self.backend.name, set_program=getattr(self.backend, "set_program", None))
-            spec = {"repetitions": repetitions, "scale": scale, "kinds": proc.kinds}
             sink = self.sink
+            logs: list[dict[str, Any]] = []
+
+            def store_log(csv: Path) -> None:  # as each experiment ends: a crash later keeps it
+                meta = json.loads(csv.with_suffix(".json").read_text(encoding="utf-8"))
+                rid = sink.run_started("protocol", {"experiment": meta["experiment"],
+                                                    "repetition": meta["repetition"], "log": csv.stem},
+                                       str(csv)) if sink else None
+                if sink is not None and rid is not None:
+                    sink.run_finished(rid, "complete", None, {"log": csv.stem})
+                logs.append({"name": csv.stem, "run_id": rid})
+
+            proc = ProtocolProcedure(outdir, repetitions, scale, kinds, rate_hz=self.rate_hz,
+                                     backend=self.backend.name, set_program=getattr(self.backend, "set_program", None),
+                                     on_log=store_log)
+            spec = {"repetitions": repetitions, "scale": scale, "kinds": proc.kinds}
 
             def store_logs(p: ProtocolProcedure) -> dict[str, Any]:
-                logs = []
-                for csv in p.finish_logs():
-                    meta = json.loads(csv.with_suffix(".json").read_text(encoding="utf-8"))
-                    rid = sink.run_started("protocol", {"experiment": meta["experiment"],
-                                                        "repetition": meta["repetition"], "log": csv.stem},
-                                           str(csv)) if sink else None
-                    if sink is not None and rid is not None:
-                        sink.run_finished(rid, "complete", None, {"log": csv.stem})
-                    logs.append({"name": csv.stem, "run_id": rid})
-                return {"log_dir": str(outdir), "logs": logs,
+                p.finish_logs()  # the writer has stored every finished experiment's log by now
+                return {"log_dir": str(outdir), "logs": list(logs),
                         "run_ids": [g["run_id"] for g in logs if g["run_id"] is not None]}
 
             return self.estimate(proc, "diagnosis_protocol", store_logs, rig="rotary", spec=spec,

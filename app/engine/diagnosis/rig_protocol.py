@@ -53,8 +53,9 @@ _PROMPT = {
 class _LogWriter:
     """The protocol's logs, written by a thread of their own (the control loop only enqueues)."""
 
-    def __init__(self) -> None:
+    def __init__(self, on_log: Callable[[Path], None] | None = None) -> None:
         self._q: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
+        self.on_log = on_log
         self.done: list[Path] = []
         self.error = ""
         self._thread = threading.Thread(target=self._run, name="cwrr-protocol-logs", daemon=True)
@@ -89,10 +90,12 @@ class _LogWriter:
                     w.close(arg if what == "close" else "incomplete")
                     if arg == "complete":
                         self.done.append(w.csv_path)
+                        if self.on_log is not None:
+                            self.on_log(w.csv_path)
                     w = None
                 if what == "stop":
                     return
-            except OSError as exc:  # a full disk: stop logging, say so, let the rig be
+            except Exception as exc:  # a full disk, a store gone: stop logging, say so, let the rig be
                 self.error = f"{type(exc).__name__}: {exc}"
                 w = None
 
@@ -112,6 +115,9 @@ class ProtocolProcedure(Procedure):
         p_atm_bar: Atmospheric pressure [bar abs] (the PRVs' zero).
         backend: The backend's name (kept in each log's metadata).
         set_program: The simulated user's program setter (None on a real rig).
+        on_log: Called with each log's CSV path as soon as its experiment ran to
+            its end (in the writer thread: the station stores it as a run then,
+            so a crash later loses none of the finished experiments).
 
     Raises:
         ValueError: A bad argument, named (nothing is created).
@@ -122,7 +128,8 @@ class ProtocolProcedure(Procedure):
 
     def __init__(self, outdir: Path | str, repetitions: int = 2, scale: float = 1.0,
                  kinds: Sequence[str] | None = None, rate_hz: float = 200.0, p_atm_bar: float = P_ATM / BAR,
-                 backend: str = "sim", set_program: Callable[[HumanProgram], None] | None = None) -> None:
+                 backend: str = "sim", set_program: Callable[[HumanProgram], None] | None = None,
+                 on_log: Callable[[Path], None] | None = None) -> None:
         super().__init__(vent_s=0.5)
         kinds = list(kinds) if kinds else list(OPEN_LOOP)
         unknown = [k for k in kinds if k not in OPEN_LOOP]
@@ -142,6 +149,7 @@ class ProtocolProcedure(Procedure):
         self.p_atm_bar = p_atm_bar
         self.backend = backend
         self.set_program = set_program
+        self.on_log = on_log
         self._logs: _LogWriter | None = None
         self._logging = False
 
@@ -163,7 +171,7 @@ class ProtocolProcedure(Procedure):
 
     # ------------------------------------------------------------ the script
     def script(self) -> Script:
-        logs = self._logs = _LogWriter()
+        logs = self._logs = _LogWriter(self.on_log)
         plan = [(rep, s) for rep in range(self.repetitions) for s in schedules(rep, self.scale)
                 if s.name in self.kinds]
         self.begin("diagnosis protocol", len(plan))
