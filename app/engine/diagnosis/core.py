@@ -744,7 +744,8 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         "family": family.name,
         "experiments": {"calibration": [getattr(e, "name", "?") for e in calib_exps],
                         "held_out": [getattr(e, "name", "?") for e in held_exps],
-                        # replayed on a uniform grid (see logs.on_uniform_grid): said, not hidden
+                        # logs sampled unevenly (the replays put them on a uniform grid, see
+                        # logs.on_uniform_grid): said, not hidden
                         "irregular_sampling": {getattr(e, "name", "?"): info for e in (*calib_exps, *held_exps)
                                                if hasattr(e, "t") and len(e.t) > 2
                                                and (info := sampling_irregularity(np.asarray(e.t))) is not None}},
