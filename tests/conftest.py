@@ -84,3 +84,28 @@ def viser_viewer(port: int, headers: dict[str, str] | None = None) -> Any:
 
     return connect(f"ws://127.0.0.1:{port}", additional_headers=headers or {}, open_timeout=10,
                    subprotocols=[Subprotocol(f"viser-v{viser.__version__}")])
+
+
+@pytest.fixture()
+def client(tmp_path: Path) -> Iterator[Any]:
+    """The app with its lifespan running on the simulated plant, not yet connected, storing in ``tmp_path``."""
+    from fastapi.testclient import TestClient
+
+    from app.api.main import create_app
+    from app.api.settings import Settings
+
+    app = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))
+    with TestClient(app) as c:
+        yield c
+
+
+def wait_engine(c: Any, cond: Any, timeout: float = 60.0) -> dict[str, Any]:
+    """Poll ``GET /api/engine`` until ``cond(state)`` holds or ``timeout`` [s] passes; the last state."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while True:
+        st: dict[str, Any] = c.get("/api/engine").json()
+        if cond(st) or time.monotonic() > deadline:
+            return st
+        time.sleep(0.1)

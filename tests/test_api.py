@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 import math
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -13,25 +12,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.api.main import create_app
-from app.api.settings import Settings
 from app.storage import Store
-
-
-@pytest.fixture()
-def client(tmp_path: Path) -> Iterator[TestClient]:
-    app = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))
-    with TestClient(app) as c:
-        yield c
-
-
-def _wait(c: TestClient, cond: Any, timeout: float = 60.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout
-    while True:
-        st = c.get("/api/engine").json()
-        if cond(st) or time.monotonic() > deadline:
-            return st
-        time.sleep(0.1)
+from tests.conftest import wait_engine
 
 
 def _assert_finished(st: dict[str, Any]) -> None:
@@ -133,7 +115,7 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
     assert live["columns"][:3] == ["t", "torque", "target"]
     newer = client.get("/api/live", params={"since": live["t_last"]}).json()["rows"]
     assert all(row[0] > live["t_last"] for row in newer)
-    st = _wait(client, lambda s: s["state"] == "idle")
+    st = wait_engine(client, lambda s: s["state"] == "idle")
     assert st["state"] == "idle" and st["last_run"]["status"] == "complete"
     run = client.get(f"/api/runs/{run_id}").json()
     assert run["status"] == "complete" and run["person"] == "P-007" and run["has_series"]
@@ -190,11 +172,11 @@ def test_identification_reports_progress_and_cancels_to_idle(client: TestClient)
     client.post("/api/engine/connect")
     r = client.post("/api/engine/estimate", json={"ns": 30, "nd": 30, "pw_bar": 3.0})
     assert r.status_code == 200 and r.json()["status"]["state"] == "identifying"
-    st = _wait(client, lambda s: (s["progress"] or {}).get("done_tests", 0) >= 1, timeout=60.0)
+    st = wait_engine(client, lambda s: (s["progress"] or {}).get("done_tests", 0) >= 1, timeout=60.0)
     assert "experiment" in st["progress"]["message"] or st["progress"]["k"] >= 1
     assert client.post("/api/engine/start", json={}).status_code == 409
     client.post("/api/engine/stop")
-    st = _wait(client, lambda s: s["state"] == "idle", timeout=10.0)
+    st = wait_engine(client, lambda s: s["state"] == "idle", timeout=10.0)
     assert st["state"] == "idle" and st["last_run"]["status"] == "cancelled"
     runs = client.get("/api/runs", params={"kind": "rotary_friction"}).json()
     assert runs[0]["status"] == "cancelled" and runs[0]["result"]["progress"]["done_tests"] >= 1
@@ -290,10 +272,10 @@ def test_the_linear_rig_runs_the_linear_identification_and_refuses_workouts(clie
                                                          "rod_diameter_mm": 10})
     assert r.status_code == 200 and r.json()["status"]["state"] == "identifying"
     assert client.get("/api/health").json()["rate_hz"] == 200.0  # thesis 4.2.2: the linear rig at 200 Hz
-    st = _wait(client, lambda s: (s["progress"] or {}).get("k", 0) >= 1, timeout=30.0)
+    st = wait_engine(client, lambda s: (s["progress"] or {}).get("k", 0) >= 1, timeout=30.0)
     assert st["progress"]["kind"] == "linear_friction"
     client.post("/api/engine/stop")
-    st = _wait(client, lambda s: s["state"] == "idle", timeout=10.0)
+    st = wait_engine(client, lambda s: s["state"] == "idle", timeout=10.0)
     assert st["last_run"]["status"] == "cancelled"
     run = client.get("/api/runs", params={"kind": "linear_friction"}).json()[0]
     assert run["spec"]["piston_diameter_mm"] == 25 and run["status"] == "cancelled"
@@ -394,7 +376,7 @@ def test_the_cpr_rig_maps_the_valve_and_fits_the_flow_model(client: TestClient) 
         "validation_s": 3.0})
     assert r.status_code == 200 and r.json()["status"]["progress"]["total_tests"] == 3
     assert client.get("/api/health").json()["rate_hz"] == 200.0
-    st = _wait(client, lambda s: s["state"] == "idle", timeout=120.0)
+    st = wait_engine(client, lambda s: s["state"] == "idle", timeout=120.0)
     _assert_finished(st)
     run = client.get(f"/api/runs/{r.json()['run_id']}").json()
     res = run["result"]
@@ -421,7 +403,7 @@ def test_the_pid_autotuner_runs_on_the_rotary_rig_and_reports_beside_the_thesis(
     r = client.post("/api/engine/tune/pid", json={"side": "b", "bandwidth_rad_s": 6.0, "periods": 1})
     assert r.status_code == 200 and r.json()["status"]["progress"]["kind"] == "pid_tuning"
     assert client.get("/api/health").json()["rate_hz"] == 200.0
-    st = _wait(client, lambda s: s["state"] == "idle", timeout=120.0)
+    st = wait_engine(client, lambda s: s["state"] == "idle", timeout=120.0)
     _assert_finished(st)
     res = client.get(f"/api/runs/{r.json()['run_id']}").json()["result"]
     tuned = res["parameters"]

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -12,13 +11,6 @@ from fastapi.testclient import TestClient
 from app.api.main import create_app
 from app.api.settings import Settings
 from app.storage import Store
-
-
-@pytest.fixture()
-def client(tmp_path: Path) -> Iterator[TestClient]:
-    app = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))
-    with TestClient(app) as c:
-        yield c
 
 
 def _join(client: TestClient, run_id: int) -> None:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -12,8 +11,6 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.api.main import create_app
-from app.api.settings import Settings
 from app.engine.diagnosis.logs import read_log
 from app.engine.diagnosis.protocol import PREROLL_S
 from app.engine.diagnosis.rig_protocol import ProtocolProcedure
@@ -23,6 +20,7 @@ from app.engine.hardware.sim import SimulatedRig
 from app.engine.ident.procedure import run_procedure
 from app.engine.loop import SimClock
 from app.engine.params import PlantParams
+from tests.conftest import wait_engine
 
 
 def _run(outdir: Path, rig: PlantParams, **kw: Any) -> tuple[ProtocolProcedure, list[Path]]:
@@ -91,20 +89,6 @@ def test_bad_protocol_arguments_are_refused_and_nothing_is_written(tmp_path: Pat
     assert not (tmp_path / "out").exists()
 
 
-@pytest.fixture()
-def client(tmp_path: Path) -> Iterator[TestClient]:
-    app = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))
-    with TestClient(app) as c:
-        yield c
-
-
-def _wait(c: TestClient, cond: Any, timeout: float = 60.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout
-    while True:
-        st = c.get("/api/engine").json()
-        if cond(st) or time.monotonic() > deadline:
-            return st
-        time.sleep(0.1)
 
 
 def test_the_station_runs_the_protocol_and_a_diagnosis_takes_its_runs(client: TestClient) -> None:
@@ -123,7 +107,7 @@ def test_the_station_runs_the_protocol_and_a_diagnosis_takes_its_runs(client: Te
         time.sleep(0.1)
     assert [x["spec"]["log"] for x in early] == ["hold_closed-1"]
     assert client.get("/api/engine").json()["state"] == "identifying"
-    st = _wait(client, lambda s: s["state"] != "identifying", 60.0)
+    st = wait_engine(client, lambda s: s["state"] != "identifying", 60.0)
     assert st["state"] == "idle", (st["fault"], st.get("safety", {}).get("fault"))
     run = client.get(f"/api/runs/{r.json()['run_id']}").json()
     assert run["kind"] == "diagnosis_protocol" and run["status"] == "finished", run
