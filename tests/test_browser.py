@@ -341,7 +341,7 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
             urllib.request.urlopen(urllib.request.Request(base + "/api/engine/connect", method="POST"), timeout=10)
     page.goto(base + "/static/diagnosis.html")
     page.select_option("#src", "rig")
-    expect(page.locator("#rkinds input")).to_have_count(6)  # the open-loop experiments; isotonic is a workout
+    expect(page.locator("#rkinds input")).to_have_count(7)
     for box in page.locator("#rkinds input").all():
         if box.get_attribute("value") != "hold_closed":
             box.uncheck()

@@ -238,18 +238,17 @@ class ProtocolRunRequest(BaseModel):
 
     Attributes:
         repetitions: Runs of every experiment (the last one of each is held out).
-        scale: Duration factor (1 ≈ 70 s of logs per repetition; each experiment
+        scale: Duration factor (1 ≈ 83 s of logs per repetition; each experiment
             also waits 1.5 s while the chambers reach its start pressure).
-        kinds: Open-loop experiments to run (default all six). The isotonic
-            experiment is a workout: run SC-1 with the Default controller.
+        kinds: Experiments to run (default all seven, in the protocol's order).
     """
 
     model_config = ConfigDict(extra="forbid")
 
     repetitions: int = Field(2, ge=1, le=3)
     scale: float = Field(1.0, ge=0.2, le=10.0)
-    kinds: list[Literal["prv_steps", "dcv_steps", "hold_closed", "fill_shut", "friction_sweep", "sine_sweep"]] | None \
-        = Field(None, min_length=1, max_length=6)
+    kinds: list[Literal["prv_steps", "dcv_steps", "hold_closed", "fill_shut", "friction_sweep", "sine_sweep",
+                        "isotonic"]] | None = Field(None, min_length=1, max_length=7)
 
 
 Triple = tuple[Literal["filling", "exhausting"], float, float]

@@ -586,7 +586,7 @@ class Station:
             return self._run_id
 
     def run_protocol(self, repetitions: int = 2, scale: float = 1.0, kinds: list[str] | None = None) -> int | None:
-        """idle → identifying: the diagnosis protocol's open-loop experiments on the connected rotary rig.
+        """idle → identifying: the diagnosis protocol's experiments on the connected rotary rig.
 
         Each experiment's log is stored as a run of kind ``protocol`` as soon
         as it ran to its end (so a stop, a fault or a crash later keeps it);

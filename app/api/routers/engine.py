@@ -206,7 +206,7 @@ def _identify(station: StationDep, proc: Any, estimator: Any, rig: str, spec: di
 @router.post("/engine/protocol", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
              summary="idle → identifying: the diagnosis protocol's experiments on the connected rotary rig")
 def run_protocol(req: ProtocolRunRequest, station: StationDep) -> Started:
-    """Runs the open-loop experiments of ``GET /api/diagnoses/protocol`` through the engine on the rig
+    """Runs the experiments of ``GET /api/diagnoses/protocol`` through the engine on the rig
     (or the simulated one), at the station's rate; the progress says what the person at the handle should
     do. Each experiment that runs to its end is stored as a run of kind ``protocol`` with its log; the
     protocol's own run lists them in ``result.run_ids``, what ``POST /api/diagnoses`` takes."""

@@ -172,6 +172,19 @@ def schedules(rep: int = 0, scale: float = 1.0) -> list[Schedule]:
     return out
 
 
+ISOTONIC_S = 12.0
+"""The isotonic experiment's length at scale 1 [s] (a Default-controller workout at 1.2 N·m)."""
+ISOTONIC_PW_BAR = 3.0
+"""Its working pressure [bar abs]."""
+
+
+def isotonic_program(rep: int) -> HumanProgram:
+    """What the user does in the isotonic experiment's repetition ``rep`` (0, 1, …): one push of 50°,
+    pronation and supination in turn, a little faster each time."""
+    return isotonic(+1 if rep % 2 == 0 else -1, speed=0.35 * (1 + 0.3 * rep), repetitions=1,
+                    amplitude=math.radians(50.0))
+
+
 PREROLL_S = 0.25
 """Rest before an experiment's first step, logged [s].
 
@@ -251,10 +264,9 @@ def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: 
             sd = seed * 1000 + rep * 100 + j
             name = f"{kind}-{rep + 1}"
             if kind == "isotonic":
-                prog = isotonic(+1 if rep % 2 == 0 else -1, speed=0.35 * (1 + 0.3 * rep), repetitions=1,
-                                amplitude=math.radians(50.0))
-                res = run_workout(params, prog, duration=12.0 * scale, rate_hz=RATE_HZ, seed=sd, pw_bar=3.0)
-                log, human, pw = res.log, True, 3.0
+                res = run_workout(params, isotonic_program(rep), duration=ISOTONIC_S * scale, rate_hz=RATE_HZ,
+                                  seed=sd, pw_bar=ISOTONIC_PW_BAR)
+                log, human, pw = res.log, True, ISOTONIC_PW_BAR
             else:
                 s = sch[kind]
                 log, human, pw = run_schedule(params, s, sd), s.human, s.pw_bar

@@ -1,8 +1,8 @@
 """The diagnosis protocol run by the engine on the connected rig (issue 6 §6).
 
 :func:`~app.engine.diagnosis.protocol.run_protocol` runs the protocol on a
-simulator of its own. On a station the same open-loop experiments
-(:func:`~app.engine.diagnosis.protocol.schedules`) go through the engine
+simulator of its own. On a station the same experiments
+(:func:`~app.engine.diagnosis.protocol.schedules` and the isotonic workout) go through the engine
 loop instead — read → control → safety → write on whatever backend is
 connected — as a :class:`~app.engine.ident.procedure.Procedure`, so they run
 paced on the rig and faster than real time on a simulated clock. Each
@@ -13,10 +13,12 @@ Per experiment: the PRVs bring both chambers to its start pressure through
 the DCVs (:data:`PRESSURISE_S`, longer while a simulated user brings the
 handle back to neutral), then the log opens with :data:`~app.engine.diagnosis.protocol.PREROLL_S`
 at rest (PRVs holding that pressure, DCVs shut at 5 V) and the schedule's
-commands follow. The experiments that need the user (a sweep of the handle,
-the rocking) say so in the progress message; on the simulated rig the
-simulated user does it. The isotonic experiment is a closed-loop workout:
-run it as one (SC-1, Default controller) and diagnose its run beside these.
+commands follow. The isotonic experiment is closed-loop, as in
+:func:`~app.engine.diagnosis.protocol.run_protocol`: its log opens at the
+start pressure and the Default controller (1.2 N·m) runs while the user
+pushes. The experiments that need the user (a sweep of the handle, the
+rocking, the push) say so in the progress message; on the simulated rig
+the simulated user does it.
 
 The loop never touches the disk: it hands each period's row to a queue,
 and a writer thread opens, appends to (``fsync`` at least every 0.5 s) and
@@ -32,14 +34,25 @@ from pathlib import Path
 from typing import Any
 
 from app.engine.constants import BAR, P_ATM
-from app.engine.diagnosis.protocol import DESCRIPTION, PREROLL_S, VISIBLE, schedules
+from app.engine.control.config import ControllerConfig
+from app.engine.control.interaction import InteractionController
+from app.engine.diagnosis.protocol import (
+    DESCRIPTION,
+    ISOTONIC_PW_BAR,
+    ISOTONIC_S,
+    PREROLL_S,
+    VISIBLE,
+    Schedule,
+    isotonic_program,
+    schedules,
+)
 from app.engine.hardware.base import SAFE_COMMAND, Command
 from app.engine.human import HumanProgram
 from app.engine.ident.procedure import Procedure, Script
 from app.engine.runlog import RunLogWriter
 
-OPEN_LOOP: tuple[str, ...] = tuple(k for k in VISIBLE if k != "isotonic")
-"""The protocol's open-loop experiments (the isotonic one is a workout)."""
+KINDS: tuple[str, ...] = tuple(VISIBLE)
+"""The protocol's experiments, in the order they run."""
 
 PRESSURISE_S = 1.5
 """Both chambers at the experiment's start pressure before its log opens [s] (as a workout starts)."""
@@ -47,6 +60,7 @@ PRESSURISE_S = 1.5
 _PROMPT = {
     "friction_sweep": "please move the handle back and forth, slowly, then faster, then fast",
     "sine_sweep": "please rock the handle to and fro, faster and faster",
+    "isotonic": "please turn the handle against the robot, in one direction and back, as in a workout",
 }
 
 
@@ -101,7 +115,7 @@ class _LogWriter:
 
 
 class ProtocolProcedure(Procedure):
-    """The diagnosis protocol's open-loop experiments on the connected rig.
+    """The diagnosis protocol's experiments on the connected rig.
 
     Also the engine's run recorder: :meth:`append` takes each period's row
     (time, applied commands, measurements) into the current experiment's log.
@@ -109,8 +123,8 @@ class ProtocolProcedure(Procedure):
     Args:
         outdir: Folder for the logs (created).
         repetitions: Runs of every experiment, 1–3 (the last is the one held out).
-        scale: Duration factor, 0.2–10 (1 ≈ 70 s of open-loop logs per repetition).
-        kinds: Experiments to run (default all of :data:`OPEN_LOOP`).
+        scale: Duration factor, 0.2–10 (1 ≈ 83 s of logs per repetition).
+        kinds: Experiments to run (default all of :data:`KINDS`).
         rate_hz: The loop's rate [Hz] (the logs' sample rate).
         p_atm_bar: Atmospheric pressure [bar abs] (the PRVs' zero).
         backend: The backend's name (kept in each log's metadata).
@@ -131,12 +145,10 @@ class ProtocolProcedure(Procedure):
                  backend: str = "sim", set_program: Callable[[HumanProgram], None] | None = None,
                  on_log: Callable[[Path], None] | None = None) -> None:
         super().__init__(vent_s=0.5)
-        kinds = list(kinds) if kinds else list(OPEN_LOOP)
-        unknown = [k for k in kinds if k not in OPEN_LOOP]
+        kinds = list(kinds) if kinds else list(KINDS)
+        unknown = [k for k in kinds if k not in KINDS]
         if unknown:
-            hint = " (a closed-loop workout: run SC-1 with the Default controller)" if "isotonic" in unknown else ""
-            raise ValueError(f"kinds: no open-loop protocol experiment {', '.join(unknown)}{hint}; "
-                             f"known: {', '.join(OPEN_LOOP)}")
+            raise ValueError(f"kinds: no protocol experiment {', '.join(unknown)}; known: {', '.join(KINDS)}")
         if not 1 <= repetitions <= 3:
             raise ValueError(f"repetitions = {repetitions} must be 1–3")
         if not 0.2 <= scale <= 10.0:
@@ -172,35 +184,44 @@ class ProtocolProcedure(Procedure):
     # ------------------------------------------------------------ the script
     def script(self) -> Script:
         logs = self._logs = _LogWriter(self.on_log)
-        plan = [(rep, s) for rep in range(self.repetitions) for s in schedules(rep, self.scale)
-                if s.name in self.kinds]
+        plan: list[tuple[int, str, Schedule | None]] = []
+        for rep in range(self.repetitions):
+            sch = {s.name: s for s in schedules(rep, self.scale)}
+            plan += [(rep, k, sch.get(k)) for k in KINDS if k in self.kinds]
         self.begin("diagnosis protocol", len(plan))
         self.progress.total_tests = len(plan)
-        for rep, s in plan:
+        for rep, kind, s in plan:
             self.next_test()
-            what = _PROMPT.get(s.name, "please hold the handle still at neutral")
-            self.progress.message = (f"experiment {self.progress.k} of {self.progress.n}: {s.name}, repetition "
-                                     f"{rep + 1} — {DESCRIPTION[s.name]}; {what}")
-            z = s.pw_bar - self.p_atm_bar  # PRV static map P = z + P_atm (SPEC §3)
+            what = _PROMPT.get(kind, "please hold the handle still at neutral")
+            self.progress.message = (f"experiment {self.progress.k} of {self.progress.n}: {kind}, repetition "
+                                     f"{rep + 1} — {DESCRIPTION[kind]}; {what}")
+            pw = s.pw_bar if s is not None else ISOTONIC_PW_BAR
+            z = pw - self.p_atm_bar  # PRV static map P = z + P_atm (SPEC §3)
             pressurise = PRESSURISE_S
             if self.set_program is not None:  # the simulated user brings the handle back to neutral
                 theta = self.meas.theta
                 self.set_program(HumanProgram.move(theta, 0.0, self.meas.t))
                 pressurise = max(PRESSURISE_S, HumanProgram.move_time(theta, 0.0) + 0.5)
             yield from self.hold(Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b), pressurise)
-            name = f"{s.name}-{rep + 1}"
+            name = f"{kind}-{rep + 1}"
             meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": self.p_atm_bar,
-                    "working_pressure_bar": s.pw_bar, "experiment": s.name, "human": s.human,
+                    "working_pressure_bar": pw, "experiment": kind, "human": s.human if s is not None else True,
                     "repetition": rep + 1, "scale": self.scale, "backend": self.backend, "source": "station"}
             logs.open(self.outdir, name, meta)
             self._logging = True
             t0 = self.meas.t
+            prog = s.program if s is not None else isotonic_program(rep)
             if self.set_program is not None:  # programs run on rig time, from the log's start
-                self.set_program(HumanProgram(s.program.t + t0, s.program.pos))
-            rest = Command(z, z, 5.0, 5.0)
+                self.set_program(HumanProgram(prog.t + t0, prog.pos))
             try:
-                while (tt := self.meas.t - t0) < PREROLL_S + s.duration - 0.5 * self.dt:
-                    yield rest if tt < PREROLL_S - 1e-9 else Command(*s.commands(tt - PREROLL_S))
+                if s is None:  # the isotonic workout: the Default controller while the user pushes
+                    ctl = InteractionController(ControllerConfig(controller="default", pw_bar=pw))
+                    while self.meas.t - t0 < ISOTONIC_S * self.scale - 0.5 * self.dt:
+                        yield ctl.step(self.meas, self.dt)
+                else:
+                    rest = Command(z, z, 5.0, 5.0)
+                    while (tt := self.meas.t - t0) < PREROLL_S + s.duration - 0.5 * self.dt:
+                        yield rest if tt < PREROLL_S - 1e-9 else Command(*s.commands(tt - PREROLL_S))
             except GeneratorExit:  # cancelled or faulted mid-experiment: keep what was logged
                 self._logging = False
                 logs.close("incomplete")
