@@ -12,7 +12,7 @@ the heavier mix.
 
 The timing goals (measured rate within 1 % of 200 Hz, p99 start jitter under
 1 ms, no overruns) are the benchmark's to print beside its no-client peer, not
-this test's to assert (DEVELOPERS.md: speed goals live in ``bench/``; on a
+this test's to assert (the developers' brief: speed goals live in ``bench/``; on a
 shared 2-core CI machine they hold in most runs, not all — docs/station.md has the
 figures). What is asserted is what must always hold: the dashboards really
 draw live data, every scripted request is answered, the workout runs to the

@@ -135,3 +135,27 @@ def test_the_station_runs_the_protocol_and_a_diagnosis_takes_its_runs(client: Te
         time.sleep(0.5)
     assert rep["status"] == "complete", rep
     assert rep["result"]["experiments"]["held_out"] == ["hold_closed-2"]
+
+
+def test_an_emergency_stop_mid_protocol_keeps_the_finished_experiments(client: TestClient) -> None:
+    """A fault latched during the second experiment: the protocol's run ends ``fault`` and still lists
+    the first experiment's run; the cut log is on disk, marked ``incomplete``, and not a run."""
+    client.post("/api/engine/connect")
+    r = client.post("/api/engine/protocol", json={"kinds": ["hold_closed"], "repetitions": 2, "scale": 0.2})
+    assert r.status_code == 200
+    deadline = time.monotonic() + 30.0
+    while not client.get("/api/runs", params={"kind": "protocol"}).json():
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    time.sleep(2.0)  # into the second experiment's log (1.5 s to pressurise, then logging)
+    assert client.post("/api/engine/estop").json()["state"] == "fault"
+    deadline = time.monotonic() + 10.0
+    while (run := client.get(f"/api/runs/{r.json()['run_id']}").json())["status"] == "running":
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    assert run["status"] == "fault", run
+    assert [g["name"] for g in run["result"]["logs"]] == ["hold_closed-1"] and len(run["result"]["run_ids"]) == 1
+    cut = json.loads((Path(run["result"]["log_dir"]) / "hold_closed-2.json").read_text())
+    assert cut["status"] == "incomplete" and cut["rows"] > 0
+    assert len(client.get("/api/runs", params={"kind": "protocol"}).json()) == 1
+
