@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import bisect
 import enum
-import json
 import math
 import sys
 import threading
@@ -607,8 +606,7 @@ class Station:
             sink = self.sink
             logs: list[dict[str, Any]] = []
 
-            def store_log(csv: Path) -> None:  # as each experiment ends: a crash later keeps it
-                meta = json.loads(csv.with_suffix(".json").read_text(encoding="utf-8"))
+            def store_log(csv: Path, meta: dict[str, Any]) -> None:  # as each experiment ends: a crash later keeps it
                 rid = sink.run_started("protocol", {"experiment": meta["experiment"],
                                                     "repetition": meta["repetition"], "log": csv.stem},
                                        str(csv)) if sink else None

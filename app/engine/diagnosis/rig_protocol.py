@@ -67,7 +67,7 @@ _PROMPT = {
 class _LogWriter:
     """The protocol's logs, written by a thread of their own (the control loop only enqueues)."""
 
-    def __init__(self, on_log: Callable[[Path], None] | None = None) -> None:
+    def __init__(self, on_log: Callable[[Path, dict[str, Any]], None] | None = None) -> None:
         self._q: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self.on_log = on_log
         self.done: list[Path] = []
@@ -105,7 +105,7 @@ class _LogWriter:
                     if arg == "complete":
                         self.done.append(w.csv_path)
                         if self.on_log is not None:
-                            self.on_log(w.csv_path)
+                            self.on_log(w.csv_path, w.meta)
                     w = None
                 if what == "stop":
                     return
@@ -129,7 +129,7 @@ class ProtocolProcedure(Procedure):
         p_atm_bar: Atmospheric pressure [bar abs] (the PRVs' zero).
         backend: The backend's name (kept in each log's metadata).
         set_program: The simulated user's program setter (None on a real rig).
-        on_log: Called with each log's CSV path as soon as its experiment ran to
+        on_log: Called with each log's CSV path and metadata as soon as its experiment ran to
             its end (in the writer thread: the station stores it as a run then,
             so a crash later loses none of the finished experiments).
 
@@ -143,7 +143,7 @@ class ProtocolProcedure(Procedure):
     def __init__(self, outdir: Path | str, repetitions: int = 2, scale: float = 1.0,
                  kinds: Sequence[str] | None = None, rate_hz: float = 200.0, p_atm_bar: float = P_ATM / BAR,
                  backend: str = "sim", set_program: Callable[[HumanProgram], None] | None = None,
-                 on_log: Callable[[Path], None] | None = None) -> None:
+                 on_log: Callable[[Path, dict[str, Any]], None] | None = None) -> None:
         super().__init__(vent_s=0.5)
         kinds = list(kinds) if kinds else list(KINDS)
         unknown = [k for k in kinds if k not in KINDS]

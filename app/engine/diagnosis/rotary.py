@@ -555,7 +555,7 @@ class RotaryFamily:
         self.prefetch(preps, [x], effects)
         for i, ch in enumerate(("a", "b")):
             sim = np.concatenate([self._pressures(p, x, effects)[:, i] for p in preps])
-            meas = np.concatenate([p.p_meas[f"p_{ch}"][p.keep] for p in preps])
+            meas = np.concatenate([self.measured(p)[f"p_{ch}"] for p in preps])  # what is scored
             ok = np.isfinite(sim) & np.isfinite(meas)
             (g, b), *_ = np.linalg.lstsq(np.column_stack([sim[ok], np.ones(int(ok.sum()))]), meas[ok], rcond=None)
             out[f"gain_{ch}"] = bounded(f"gain_{ch}", g)
