@@ -44,12 +44,14 @@ candidate's fit after its own grid,
 ``frozen(effects)`` naming parameters the candidate being added cannot trade with
 (held at the reference fit), ``rebase(effects)`` naming baseline parameters
 whose reference values may stand in for the candidate being added (the grid
-and a second descent start them from their nominal values; the fit with the
-lower calibration cost is kept), ``prefetch(preps, params_list, effects)`` to
-compute predictions for many parameter sets at once (e.g. on all cores),
+and a second descent start them from their nominal values, free in that
+descent even where ``frozen`` holds them; the fit with the lower calibration
+cost is kept), ``prefetch(preps, params_list, effects)`` to compute
+predictions for many parameter sets at once (e.g. on all cores),
 ``linear_start(preps, params, effects)`` giving, instead of the grid, a start for a
 candidate's descent with the parameters that enter the predictions (nearly)
-linearly at their least-squares values (or ``None``: the grid), and
+linearly at their least-squares values (or ``None``: the grid; with ``rebase``,
+taken again at the baseline grid's best), and
 ``shared_scale``: groups of channels of one quantity normalised by one
 scale, the largest of their SDs (a regulated supply's own SD is its noise:
 normalised by it, its NRMSE is ≈ 1 whatever the model, and the ±1–2 %
@@ -313,18 +315,19 @@ def _residuals(family: Family, preps: list[Any], meas: list[dict[str, np.ndarray
 
 def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: dict[str, float] | None = None,
         scales: dict[str, float] | None = None, starts: list[dict[str, float]] | None = None,
-        stop: threading.Event | None = None) -> Fit:
+        stop: threading.Event | None = None, free: set[str] | None = None) -> Fit:
     """Bounded least squares of the baseline (plus ``effects``) on ``preps``.
 
     ``starts`` (several starting points) overrides ``start``: the descent
-    starts from the one with the lowest cost. ``stop``, once set, ends the
-    fit at its next cost evaluation with :class:`Cancelled`.
+    starts from the one with the lowest cost. ``free`` names parameters the
+    family's ``frozen`` holds that this descent moves anyway. ``stop``, once
+    set, ends the fit at its next cost evaluation with :class:`Cancelled`.
     """
     all_specs = _specs(family, effects)
     first = (starts or [start or {}])[0]
     # parameters the family says cannot interact with these effects stay where the
     # reference fit put them (e.g. flow capacities when only the torque balance changes)
-    frozen_names: set[str] = getattr(family, "frozen", lambda _e: set())(effects)
+    frozen_names: set[str] = getattr(family, "frozen", lambda _e: set())(effects) - (free or set())
     fixed = {s.name: min(max(first.get(s.name, s.x0), s.lo), s.hi) for s in all_specs if s.name in frozen_names}
     specs = [s for s in all_specs if s.name not in fixed]
     scales = scales or channel_scales(family, preps)
@@ -536,18 +539,23 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     starts = [off, typ] if off != typ else [off]
     points = int(getattr(family, "grid_points", 0))
     rounds = int(getattr(family, "grid_refinements", 1))
-    frozen: set[str] = getattr(family, "frozen", lambda _e: set())(effects)
-    rebase = set(getattr(family, "rebase", lambda _e: set())(effects)) - frozen
+    rebase = set(getattr(family, "rebase", lambda _e: set())(effects))
     prior = ref.params | {s.name: s.x0 for s in family.baseline() if s.name in rebase}
+    linear = getattr(family, "linear_start", None)
     if points and new and prior != ref.params:
         # The reference recalibrated its baseline without the effect, so some of its values
         # stand in for it (a missing heat exchange shrank the fitted dead volumes by a third).
         # On a rough cost surface a descent from there rarely travels back, so the grid runs
         # with those parameters at their nominal values; the descent from the reference (the
         # effect off or typical) keeps the fit never worse than it; the calibration cost decides.
-        f = fit(family, calib, effects, scales=scales, starts=starts, stop=stop)
+        lin_ref = linear(calib, off, effects) if linear is not None else None
+        f = fit(family, calib, effects, scales=scales, starts=starts + ([lin_ref] if lin_ref is not None else []),
+                stop=stop)
         raise_if_stopped(stop)
-        st = _grid_start(family, calib, effects, prior, new, points, scales, rounds)
+        # an effect with a linear start needs no grid of its own, only that start from the
+        # nominal values, taken again once the baseline's grid has moved them
+        lin = linear(calib, prior | {p.name: off[p.name] for p in new}, effects) if linear is not None else None
+        st = lin if lin is not None else _grid_start(family, calib, effects, prior, new, points, scales, rounds)
         # then the nominal values themselves move on the baseline's own grid, the effect where
         # its grid put it: from nominal the descent had left them there (a vane leak's fit kept
         # the flow capacities and dead volumes at 1.00 × nominal for a true 0.92 / 0.82 / 1.19 ×,
@@ -555,10 +563,11 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
         grid_base = [p for p in getattr(family, "base_grid", ()) if p.name in rebase]
         if grid_base:
             st = _grid_start(family, calib, effects, st, grid_base, 3, scales)
-        g = fit(family, calib, effects, scales=scales, stop=stop, start=st)
+            if lin is not None and linear is not None:
+                st = linear(calib, st, effects) or st
+        g = fit(family, calib, effects, scales=scales, stop=stop, start=st, free=rebase)
         f = g if g.rss < f.rss else f
     else:
-        linear = getattr(family, "linear_start", None)
         lin = linear(calib, off, effects) if linear is not None else None
         if lin is not None:
             # parameters that enter (nearly) linearly start from their least-squares values,

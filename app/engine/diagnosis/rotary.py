@@ -520,7 +520,7 @@ class RotaryFamily:
         return set()
 
     def rebase(self, effects: tuple[str, ...]) -> set[str]:
-        """Baseline parameters a pneumatic effect's fit also restarts from their nominal values.
+        """Baseline parameters a single effect's fit also restarts from their nominal values.
 
         Recalibrated without the effect, the flow capacities and dead volumes
         absorb what they can of it: on a rig with a slow heat exchange
@@ -528,8 +528,16 @@ class RotaryFamily:
         for a true 1.19 ×, and the fit of heat_transfer from there ended at
         h·A = 0.9 W/K at 2.7 × the calibration cost of the truth (from the
         nominal values: 0.055 W/K). See the core's optional family attributes.
+
+        Pressure sensors' offsets too, though they leave the network alone
+        (:meth:`frozen` holds the flows for the descent from the reference):
+        on a rig whose sensors read 0.15 / 0.10 bar high, the baseline took the
+        offsets into the flows (PRV and DCV capacity 1.25 / 0.80 × nominal for
+        a true 1.11 / 1.04 ×), and the offsets' fit from there ended at 3.0 ×
+        the truth's calibration cost (from the nominal flows: 0.76 ×).
         """
-        return set(_PNEUMATIC_BASE) if effects and effects[-1] in _PNEUMATIC_EFFECTS else set()
+        return set(_PNEUMATIC_BASE) if len(effects) == 1 and effects[0] in (*_PNEUMATIC_EFFECTS, "sensor_bias") \
+            else set()
 
     def linear_start(self, preps: list[RotaryPrep], x: dict[str, float],
                      effects: tuple[str, ...]) -> dict[str, float] | None:
