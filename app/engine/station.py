@@ -914,8 +914,7 @@ class Station:
         proc.cancel()
         result: dict[str, Any] = {"progress": proc.progress.as_dict(), "fault": self._fault_detail()}
         if getattr(proc, "fit_on_abort", False):  # what ran to its end is still good (the protocol's logs)
-            if self.engine is not None and self.engine.recorder is proc:
-                self.engine.recorder = None
+            self._detach_recorder(proc)  # before the fit waits for its logs
             try:
                 result |= self._proc_fit(proc)
             except Exception as exc:
@@ -929,9 +928,13 @@ class Station:
         self.last_run = {"run_id": self._run_id, "status": status, "result": result}
         assert self.supervisor is not None
         self.supervisor.job = None
-        if self.engine is not None and self.engine.recorder is self._proc:
-            self.engine.recorder = None
+        self._detach_recorder(self._proc)
         self._proc = None
+
+    def _detach_recorder(self, recorder: Any) -> None:
+        """Stop the loop handing its rows to ``recorder`` (if it still does)."""
+        if self.engine is not None and self.engine.recorder is recorder:
+            self.engine.recorder = None
 
     def _finish_procedure(self) -> None:
         proc = self._proc

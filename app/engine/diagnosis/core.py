@@ -542,15 +542,18 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     rebase = set(getattr(family, "rebase", lambda _e: set())(effects))
     prior = ref.params | {s.name: s.x0 for s in family.baseline() if s.name in rebase}
     linear = getattr(family, "linear_start", None)
+    lin_ref = linear(calib, off, effects) if linear is not None else None
+    if lin_ref is not None:
+        # parameters that enter (nearly) linearly start from their least-squares values,
+        # which a coarse grid over their range only approximates
+        starts.append(lin_ref)
     if points and new and prior != ref.params:
         # The reference recalibrated its baseline without the effect, so some of its values
         # stand in for it (a missing heat exchange shrank the fitted dead volumes by a third).
         # On a rough cost surface a descent from there rarely travels back, so the grid runs
         # with those parameters at their nominal values; the descent from the reference (the
         # effect off or typical) keeps the fit never worse than it; the calibration cost decides.
-        lin_ref = linear(calib, off, effects) if linear is not None else None
-        f = fit(family, calib, effects, scales=scales, starts=starts + ([lin_ref] if lin_ref is not None else []),
-                stop=stop)
+        f = fit(family, calib, effects, scales=scales, starts=starts, stop=stop)
         raise_if_stopped(stop)
         # an effect with a linear start needs no grid of its own, only that start from the
         # nominal values, taken again once the baseline's grid has moved them
@@ -568,12 +571,7 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
         g = fit(family, calib, effects, scales=scales, stop=stop, start=st, free=rebase)
         f = g if g.rss < f.rss else f
     else:
-        lin = linear(calib, off, effects) if linear is not None else None
-        if lin is not None:
-            # parameters that enter (nearly) linearly start from their least-squares values,
-            # which a coarse grid over their range only approximates
-            starts.append(lin)
-        elif points and new:
+        if lin_ref is None and points and new:
             raise_if_stopped(stop)
             starts.append(_grid_start(family, calib, effects, ref.params, new, points, scales, rounds))
         f = fit(family, calib, effects, scales=scales, starts=starts, stop=stop)
