@@ -347,7 +347,7 @@ def test_the_replay_backend_plays_a_log_as_the_rig_on_its_clock(tmp_path: Path) 
 
 
 def test_a_replayed_log_drives_the_station_like_a_rig(tmp_path: Path) -> None:
-    from app.engine.station import Station
+    from app.engine.station import Station, TransitionError
 
     path = _recorded_run(tmp_path)
     cfg = HardwareConfig(backend="replay", replay=ReplaySource(log=str(path), loop=True))
@@ -357,6 +357,11 @@ def test_a_replayed_log_drives_the_station_like_a_rig(tmp_path: Path) -> None:
         time.sleep(4.0)  # past the log's end (3 s): it turns and plays backwards, seamlessly
         assert st.status()["backend"] == "replay" and st.state.value == "idle", st.fault_message
         assert len(st.live.since(-1.0, 10_000)) > 50
+        # a recording does not answer commands: what measures the rig's answers is refused, nothing moves
+        with pytest.raises(TransitionError, match="replay backend plays a recorded log and does not respond"):
+            st.run_protocol(scale=0.5)
+        assert st.state.value == "idle" and st.status()["run_id"] is None
+        assert "estimate" not in st.allowed() and "start" in st.allowed()  # the dashboard greys those buttons
     finally:
         st.close()
 
@@ -377,6 +382,9 @@ def test_the_backend_is_chosen_by_the_configuration_file_alone(tmp_path: Path) -
     with TestClient(app) as c:
         st = c.get("/api/engine").json()
         assert st["state"] == "idle" and st["backend"] == "replay"
+        r = c.post("/api/engine/protocol", json={"scale": 0.5})
+        assert r.status_code == 409 and "does not respond to commands" in r.json()["detail"], r.text
+        assert c.get("/api/engine").json()["state"] == "idle"
     bad = tmp_path / "bad.yaml"
     bad.write_text("backend: quanser\nquanser: {watchdog_s: -1}\n")
     from app.engine.params import ParameterError

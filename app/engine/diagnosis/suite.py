@@ -3,7 +3,8 @@
 Each case runs the diagnosis protocol (:mod:`.protocol`) on a rig that has
 one of the nine effects at one of two magnitudes, nominal parameters off by
 up to ±20 % (PRV and DCV flow capacities, dead volumes, pressure-sensor
-gains, friction levels — what the baseline recalibrates) and sensor noise.
+gains, friction levels — what the baseline recalibrates — by group, or
+parameter by parameter: :data:`ERRORS`) and sensor noise.
 The diagnosed model (:class:`~app.engine.diagnosis.rotary.RotaryFamily` on
 the *unperturbed* nominal rig) lacks the effect. The first repetition of
 every experiment calibrates, the second is held out. Effect-free cases
@@ -101,14 +102,63 @@ def perturbed(seed: int, spread: float = 0.2) -> PlantParams:
     )
 
 
+def perturbed_each(seed: int, spread: float = 0.2) -> PlantParams:
+    """The nominal rig with *every* recalibratable parameter off by an error of its own (uniform, ±``spread``).
+
+    :func:`perturbed` scales each group by one factor, the way the baseline
+    recalibrates it. A rig model written by someone else need not: here each
+    friction table entry (static, Coulomb, Stribeck speed and viscous
+    coefficient, per direction and working pressure), the PRV's supply and
+    exhaust capacities and each chamber's dead volume has its own error, and
+    the Coulomb level stays at most the static one. The baseline can only
+    approximate such a rig (:func:`true_params` gives its group averages).
+    """
+    rng = np.random.default_rng(seed)
+
+    def f() -> float:
+        return float(1.0 + rng.uniform(-spread, spread))
+
+    p = PlantParams()
+    fr = p.friction
+    keys = ("ts_ccw", "tc_ccw", "ws_ccw", "b_ccw", "ts_cw", "tc_cw", "ws_cw", "b_cw")
+    each: dict[str, Any] = {k: tuple(v * f() for v in getattr(fr, k)) for k in keys}
+    for d in ("ccw", "cw"):  # |T_c| ≤ |T_s| (the CW entries are negative)
+        each[f"tc_{d}"] = tuple(math.copysign(min(abs(c), abs(t)), c)
+                                for c, t in zip(each[f"tc_{d}"], each[f"ts_{d}"], strict=True))
+    g_a, g_b = 1.0 + 0.1 * (f() - 1.0), 1.0 + 0.1 * (f() - 1.0)
+    return replace(
+        p, friction=replace(fr, **each),
+        prv=replace(p.prv, c_supply=p.prv.c_supply * f(), c_exhaust=p.prv.c_exhaust * f()),
+        dcv=replace(p.dcv, c=p.dcv.c * f()),
+        vane=replace(p.vane, dead_volume_a=p.vane.dead_volume_a * f(), dead_volume_b=p.vane.dead_volume_b * f()),
+        sensors=replace(p.sensors, pressure_gain_a=g_a, pressure_gain_b=g_b),
+    )
+
+
+ERRORS: dict[str, Callable[[int], PlantParams]] = {"grouped": perturbed, "each": perturbed_each}
+"""How a case's rig is off nominal: by group (what the baseline recalibrates) or parameter by parameter."""
+
+
 def true_params(rig: PlantParams, effect: str | None) -> dict[str, float]:
-    """The diagnosed model's parameters that reproduce ``rig`` (the suite's answer key)."""
+    """The diagnosed model's parameters that reproduce ``rig`` (the suite's answer key).
+
+    Exact for :func:`perturbed`'s rigs; for :func:`perturbed_each`'s, group
+    averages (the model's form cannot reproduce them exactly).
+    """
     n = PlantParams()
-    x = {"prv_c_scale": rig.prv.c_supply / n.prv.c_supply, "dcv_c_scale": rig.dcv.c / n.dcv.c,
-         "dead_volume_scale": rig.vane.dead_volume_a / n.vane.dead_volume_a,
+    fr, nf = rig.friction, n.friction
+
+    def ratio(a: tuple[float, ...], b: tuple[float, ...]) -> float:
+        return float(np.mean(np.asarray(a) / np.asarray(b)))
+
+    ccw, cw = ratio(fr.ts_ccw + fr.tc_ccw, nf.ts_ccw + nf.tc_ccw), ratio(fr.ts_cw + fr.tc_cw, nf.ts_cw + nf.tc_cw)
+    x = {"prv_c_scale": 0.5 * (rig.prv.c_supply / n.prv.c_supply + rig.prv.c_exhaust / n.prv.c_exhaust),
+         "dcv_c_scale": rig.dcv.c / n.dcv.c,
+         "dead_volume_scale": 0.5 * (rig.vane.dead_volume_a / n.vane.dead_volume_a
+                                     + rig.vane.dead_volume_b / n.vane.dead_volume_b),
          "gain_a": rig.sensors.pressure_gain_a, "gain_b": rig.sensors.pressure_gain_b,
-         "friction_scale": rig.friction.ts_ccw[0] / n.friction.ts_ccw[0],
-         "viscous_scale": rig.friction.b_ccw[0] / n.friction.b_ccw[0]}
+         "friction_scale": 0.5 * (ccw + cw), "friction_asymmetry": (ccw - cw) / (ccw + cw),
+         "viscous_scale": ratio(fr.b_ccw + fr.b_cw, nf.b_ccw + nf.b_cw)}
     if effect is not None:
         names = {p.name for p in RotaryFamily().effect(effect)}
         x |= {f"{effect}.{k}": float(v) for k, v in asdict(getattr(rig.effects, effect)).items()
@@ -140,7 +190,7 @@ def oracle_gap_closure(report: dict[str, Any], held: list[Experiment], x: dict[s
 
 
 def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float = 1.0,
-             structural: str | None = None) -> dict[str, Any]:
+             structural: str | None = None, errors: str = "grouped") -> dict[str, Any]:
     """Generate one case's logs and diagnose them.
 
     Args:
@@ -150,13 +200,16 @@ def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float
         scale: Protocol duration factor.
         structural: A key of :data:`STRUCTURAL`: the rig also differs from
             the model in form (the oracle GC then still uses the model's form).
+        errors: A key of :data:`ERRORS`: how the nominal parameters are off.
 
     Returns:
         ``effect``, ``magnitude``, ``rank`` of the true effect in the ranking
         (1 = first; ``None`` for effect-free), ``verdict``, the true
         effect's held-out ``gap_closure``, ``seconds`` and the report.
     """
-    rig = perturbed(seed)
+    if errors not in ERRORS:
+        raise ValueError(f"no parameter-error kind {errors!r}; known: {', '.join(ERRORS)}")
+    rig = ERRORS[errors](seed)
     if structural is not None:
         if structural not in STRUCTURAL:
             raise ValueError(f"no structural variant {structural!r}; known: {', '.join(STRUCTURAL)}")
@@ -175,9 +228,9 @@ def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float
     rank = (names.index(effect) + 1) if effect is not None else None
     gc = next((r["gap_closure"] for r in rep["ranking"] if r["effect"] == effect), None)
     oracle = oracle_gap_closure(rep, held, true_params(rig, effect), (effect,) if effect else ())
-    return {"effect": effect, "magnitude": magnitude, "seed": seed, "structural": structural, "rank": rank,
-            "first": first, "verdict": found, "confusable_with": rep["verdict"]["confusable_with"], "gap_closure": gc,
-            "oracle_gap_closure": oracle, "seconds": secs, "report": rep}
+    return {"effect": effect, "magnitude": magnitude, "seed": seed, "structural": structural, "errors": errors,
+            "rank": rank, "first": first, "verdict": found, "confusable_with": rep["verdict"]["confusable_with"],
+            "gap_closure": gc, "oracle_gap_closure": oracle, "seconds": secs, "report": rep}
 
 
 def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
@@ -200,7 +253,7 @@ def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
         "null_cases": len(null),
         "false_positive_rate": (sum(1 for r in null if r["verdict"]) / len(null)) if null else None,
         "median_oracle_gc": float(np.median([r["oracle_gap_closure"] for r in eff])) if eff else None,
-        "rows": [{k: r.get(k) for k in ("effect", "magnitude", "seed", "structural", "rank", "verdict",
+        "rows": [{k: r.get(k) for k in ("effect", "magnitude", "seed", "structural", "errors", "rank", "verdict",
                                         "confusable_with", "gap_closure", "oracle_gap_closure", "seconds")}
                  for r in results],
     }
