@@ -461,23 +461,6 @@ def test_sensor_offsets_give_back_the_flows_the_baseline_bent_to_absorb_them() -
     assert cost(fitted) < 1.5 * cost(truth), fitted
 
 
-def test_friction_off_per_direction_is_recalibrated_not_blamed_on_a_torque_offset() -> None:
-    """An effect-free rig whose every nominal parameter has an error of its own (suite.perturbed_each):
-    at the protocol's 2–3 bar, CCW static/Coulomb friction 0.82–0.99 × nominal, CW 1.17–1.20 ×.
-    With one friction scale for both directions, the torque balance's misfit bent the pressure
-    sensors' gains (they set the pneumatic torque), and sensor_bias won the pressures back:
-    significant, held-out GC 0.50 (p_a / p_b 12 / 15 mbar RMS better, torque offset −0.13 N·m).
-    The baseline now fits the static/Coulomb levels per direction (friction_asymmetry)."""
-    rig = perturbed_each(8278)
-    exps = run_protocol(rig, seed=501)
-    rep = diagnose(RotaryFamily(), [e for e in exps if e.meta["repetition"] == 1],
-                   [e for e in exps if e.meta["repetition"] == 2], candidates=["sensor_bias"])
-    assert not rep["ranking"][0]["significant"], rep["ranking"][0]
-    assert rep["verdict"]["effects"] == []
-    # (F_ccw − F_cw)/(F_ccw + F_cw) ≈ (0.88 − 1.18)/(0.88 + 1.18) = −0.15 at those entries
-    assert -0.25 < rep["baseline"]["identifiability"]["params"]["friction_asymmetry"] < -0.05
-
-
 def test_every_parameter_off_by_its_own_error_stays_within_the_spread_and_physical() -> None:
     """suite.perturbed_each: each table entry and capacity has its own error within ±20 %, the
     Coulomb level never exceeds the static one, and the groups' averages are the answer key."""
@@ -490,7 +473,9 @@ def test_every_parameter_off_by_its_own_error_stays_within_the_spread_and_physic
     assert np.all(np.abs(fr.tc_ccw) <= np.abs(fr.ts_ccw)) and np.all(np.abs(fr.tc_cw) <= np.abs(fr.ts_cw))
     assert rig.prv.c_supply / n.prv.c_supply != pytest.approx(rig.prv.c_exhaust / n.prv.c_exhaust)
     truth = true_params(rig, None)
-    assert 0.8 <= truth["prv_c_scale"] <= 1.2 and -0.2 <= truth["friction_asymmetry"] <= 0.2
-    assert true_params(perturbed(3), None)["friction_asymmetry"] == pytest.approx(0.0, abs=1e-12)  # grouped: symmetric
+    assert 0.8 <= truth["prv_c_scale"] <= 1.2 and 0.8 <= truth["friction_scale"] <= 1.2
+    grouped = perturbed(3)  # one factor per group: its answer key is that factor
+    assert true_params(grouped, None)["friction_scale"] == pytest.approx(grouped.friction.ts_ccw[0]
+                                                                        / n.friction.ts_ccw[0])
     with pytest.raises(ValueError, match="no parameter-error kind 'per-entry'; known: grouped, each"):
         run_case(None, seed=3, errors="per-entry")

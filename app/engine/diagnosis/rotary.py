@@ -30,8 +30,7 @@ an input (issue 6 §1: "its recorded human interaction").
 Baseline (the thesis's model, recalibrated with bounds): PRV and DCV flow
 capacities and the dead volumes as scale factors, the pressure sensors'
 gains, and the friction's Coulomb/static and viscous levels as scale
-factors (the static/Coulomb one with an asymmetry between CCW and CW).
-Candidates: all nine of :data:`~app.engine.params.EFFECT_NAMES`.
+factors. Candidates: all nine of :data:`~app.engine.params.EFFECT_NAMES`.
 """
 
 from __future__ import annotations
@@ -286,12 +285,6 @@ class RotaryFamily:
             Param("gain_a", 1.0, 0.8, 1.2, "-"),
             Param("gain_b", 1.0, 0.8, 1.2, "-"),
             Param("friction_scale", 1.0, 0.3, 3.0, "-", log=True),
-            # the thesis identifies friction per direction (Table 4.2), so a rig's CCW and CW levels
-            # are off by errors of their own; with one scale for both, the torque balance's misfit
-            # bent the pressure gains and sensor_bias won it back (effect-free rigs, friction off
-            # per direction: GC 0.37 and 0.48, the second significant; every parameter off by its
-            # own error: significant on 1 of 10, GC up to 0.50)
-            Param("friction_asymmetry", 0.0, -0.5, 0.5, "-"),
             Param("viscous_scale", 1.0, 0.1, 10.0, "-", log=True),
         ]
 
@@ -600,10 +593,9 @@ class RotaryFamily:
         (a pneumatic candidate's descent varies flow parameters it cannot see)."""
         j = self.nominal.vane.inertia + (x["inertia.extra"] if "inertia" in effects else 0.0)
         fs, vs = x.get("friction_scale", 1.0), x.get("viscous_scale", 1.0)
-        asym = x.get("friction_asymmetry", 0.0)
         lug = "presliding_friction" in effects
         s0, s1 = x.get("presliding_friction.sigma0", 1.0), x.get("presliding_friction.sigma1", 0.0)
-        key = (lug, *(round(v, 12) for v in (ga, gb, ba, bb, bt, j, fs, asym, vs, s0, s1)))
+        key = (lug, *(round(v, 12) for v in (ga, gb, ba, bb, bt, j, fs, vs, s0, s1)))
         hit = _lru_get(prep.torque_cache, key)
         if hit is not None:
             return hit
@@ -616,8 +608,7 @@ class RotaryFamily:
         pa, pb = sensed(prep.pa_f, prep.pb_f)
         tp = self.kernel.area_a * (pa - pb) * BAR
         fr = pl.pack_friction(self.nominal.friction).copy()
-        fr[[1, 2]] *= fs * (1.0 + asym)  # static and Coulomb levels, CCW
-        fr[[5, 6]] *= fs * (1.0 - asym)  # and CW
+        fr[[1, 2, 5, 6]] *= fs
         fr[[4, 8]] *= vs
         # what static friction holds is computed sample by sample from the raw signals (the vane
         # does not accelerate while stuck) and filtered once with the rest: filtering the

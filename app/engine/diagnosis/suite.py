@@ -151,13 +151,13 @@ def true_params(rig: PlantParams, effect: str | None) -> dict[str, float]:
     def ratio(a: tuple[float, ...], b: tuple[float, ...]) -> float:
         return float(np.mean(np.asarray(a) / np.asarray(b)))
 
-    ccw, cw = ratio(fr.ts_ccw + fr.tc_ccw, nf.ts_ccw + nf.tc_ccw), ratio(fr.ts_cw + fr.tc_cw, nf.ts_cw + nf.tc_cw)
     x = {"prv_c_scale": 0.5 * (rig.prv.c_supply / n.prv.c_supply + rig.prv.c_exhaust / n.prv.c_exhaust),
          "dcv_c_scale": rig.dcv.c / n.dcv.c,
          "dead_volume_scale": 0.5 * (rig.vane.dead_volume_a / n.vane.dead_volume_a
                                      + rig.vane.dead_volume_b / n.vane.dead_volume_b),
          "gain_a": rig.sensors.pressure_gain_a, "gain_b": rig.sensors.pressure_gain_b,
-         "friction_scale": 0.5 * (ccw + cw), "friction_asymmetry": (ccw - cw) / (ccw + cw),
+         "friction_scale": ratio(fr.ts_ccw + fr.tc_ccw + fr.ts_cw + fr.tc_cw,
+                                 nf.ts_ccw + nf.tc_ccw + nf.ts_cw + nf.tc_cw),
          "viscous_scale": ratio(fr.b_ccw + fr.b_cw, nf.b_ccw + nf.b_cw)}
     if effect is not None:
         names = {p.name for p in RotaryFamily().effect(effect)}
