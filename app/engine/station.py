@@ -432,9 +432,17 @@ class Station:
         """Actions legal now."""
         st = self.state
         scaled = isinstance(getattr(self.backend, "config", None), HardwareConfig)
-        responds = self.backend is None or self.backend.responds_to_commands
         return [a for a, ok in ALLOWED.items()
-                if st in ok and (a != "calibrate" or scaled) and (a != "estimate" or responds)]
+                if st in ok and (a != "calibrate" or scaled) and self._backend_refuses(a) is None]
+
+    def _backend_refuses(self, action: str) -> str | None:
+        """Why the connected backend cannot do ``action`` whatever the state (``None`` if it can)."""
+        if action == "estimate" and self.backend is not None and not self.backend.responds_to_commands:
+            # a procedure measures how the rig answers its commands; a recording answers none of them
+            return (f"the {self.backend.name} backend plays a recorded log and does not respond to commands; "
+                    "identification and the diagnosis protocol need the rig or the simulator (disconnect and "
+                    "connect another backend)")
+        return None
 
     def _require(self, action: str) -> None:
         st = self.state
@@ -452,12 +460,9 @@ class Station:
             if rig is not None and self.rig.kind != rig:
                 raise TransitionError(action, self.state, f"this needs the {rig} rig; the {self.rig.kind} rig is "
                                       f"connected (disconnect and connect rig={rig})")
-            if action == "estimate" and self.backend is not None and not self.backend.responds_to_commands:
-                # a procedure measures how the rig answers its commands; a recording answers none of them
-                raise TransitionError(action, self.state, f"the {self.backend.name} backend plays a recorded log "
-                                      "and does not respond to commands; identification and the diagnosis "
-                                      "protocol need the rig or the simulator (disconnect and connect another "
-                                      "backend)")
+            why = self._backend_refuses(action)
+            if why is not None:
+                raise TransitionError(action, self.state, why)
 
     # ---------------------------------------------------------------- actions
 
