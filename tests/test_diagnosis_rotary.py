@@ -4,15 +4,17 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from app.engine.diagnosis import rotary
 from app.engine.diagnosis.core import _residuals, channel_scales, diagnose, fit
 from app.engine.diagnosis.logs import LogFormatError, read_logdir
 from app.engine.diagnosis.protocol import PREROLL_S, VISIBLE, effect_experiments, run_protocol
-from app.engine.diagnosis.rotary import RotaryFamily
+from app.engine.diagnosis.rotary import RotaryFamily, _phase_lost
 from app.engine.diagnosis.run import PROTOCOL, _split_station, diagnose_dir
 from app.engine.diagnosis.suite import MAGNITUDES, perturbed, perturbed_each, run_case, true_params
 from app.engine.params import EFFECT_NAMES, PlantParams, ValveDynamicsEffect
@@ -238,6 +240,55 @@ def test_protocol_logs_begin_at_rest_so_a_lagging_valve_replays_from_the_start()
     y, m = fam.predict(prep, x, ("valve_dynamics",)), fam.measured(prep)
     for c in ("p_a", "p_b"):
         assert np.sqrt(np.mean((y[c] - m[c])[: n0 + 200] ** 2)) < 0.01, c  # bar, through the first second
+
+
+def test_the_regulators_phase_counts_as_lost_from_half_a_second_after_a_chambers_step() -> None:
+    """A chamber's prediction is the replay's cycle mean only where its averaging window lies
+    wholly :data:`~rotary.PHASE_KEPT_S` or more after that chamber's last command step, or after
+    the log's start (the replay starts in phase, from what the sensors read)."""
+    dt, n = 0.005, 1000
+    cmds = np.full((n, 2), 5.0)
+    cmds[400:, 0] = 6.0  # a PRV step at sample 400
+    cmds[700:, 1] = 5.0 + 0.5 * rotary.STEP_V  # a change below a step
+    lost = _phase_lost(cmds, dt)
+    before, after = round(rotary.PHASE_KEPT_S / dt), round(0.5 * rotary.CYCLE_MEAN_S / dt) + 1
+    assert not lost[: before + 1].any()  # the start
+    assert lost[before + 1: 400 - after].all()
+    assert not lost[400 - after: 400 + before + 1].any()  # the step's window, either side
+    assert lost[400 + before + 1:].all()
+
+
+def test_where_the_phase_is_lost_the_cycles_mean_predicts_the_rig_better() -> None:
+    """A PRV that acts cycles in a sawtooth whose phase the replay loses a few cycles after a step:
+    two sawtooths out of phase differ by about their size, a mean by less. On a noise-free rig
+    replayed with its true parameters (heat exchange, the second draw's larger: the replay_floor
+    bench's case), the mean lowers the friction sweep's chamber pressure error by a quarter
+    (0.021 → 0.015 bar RMS on this half-length log), and where the phase holds the prediction is the
+    replay's."""
+    noisy = perturbed(101).with_effects(heat_transfer=MAGNITUDES["heat_transfer"][1])
+    rig = replace(noisy, sensors=replace(noisy.sensors, pressure_noise_bar=0.0, torque_noise_nm=0.0))
+    x = true_params(rig, "heat_transfer")
+    logs = run_protocol(rig, seed=101, repetitions=1, scale=0.5, kinds=["prv_steps", "friction_sweep"])
+
+    def rms(mean_s: float) -> dict[str, tuple[float, np.ndarray, np.ndarray]]:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(rotary, "CYCLE_MEAN_S", mean_s)
+            fam = RotaryFamily()
+            out = {}
+            for e in logs:
+                prep = fam.prepare(e)
+                y, m = fam.predict(prep, x, ("heat_transfer",)), fam.measured(prep)
+                out[e.name.split("-")[0]] = (float(np.sqrt(np.mean((y["p_a"] - m["p_a"]) ** 2))), y["p_a"],
+                                             prep.phase_lost[0])
+        return out
+
+    mean, raw = rms(rotary.CYCLE_MEAN_S), rms(0.0)
+    assert mean["friction_sweep"][0] < 0.85 * raw["friction_sweep"][0]
+    assert mean["prv_steps"][0] <= raw["prv_steps"][0]
+    for k in mean:
+        kept = ~mean[k][2]
+        assert kept.any() and mean[k][2].any()
+        np.testing.assert_array_equal(mean[k][1][kept], raw[k][1][kept])
 
 
 def test_replay_sees_an_effect_where_it_acts(nominal_logs: list) -> None:
