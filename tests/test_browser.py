@@ -62,11 +62,22 @@ def browser() -> Iterator[object]:
 
 
 def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: object, tmp_path: Path) -> None:
+    import json
+    import urllib.request
+
     from playwright.sync_api import Browser, expect
 
     assert isinstance(browser, Browser)
     base, _viser = station
     SHOTS.mkdir(parents=True, exist_ok=True)
+    # a slower exercise shape (half the default 0.3 rad/s: ≈ 17 s instead of ≈ 9.5 s), stored the way a
+    # researcher would, so that STOP lands mid-run however long the screenshots take on a loaded machine
+    # (on a fresh clone's CI the default run once ended on its own before STOP was pressed)
+    req = urllib.request.Request(base + "/api/params", method="POST", headers={"Content-Type": "application/json"},
+                                 data=json.dumps({"kind": "workout", "name": "slow and steady",
+                                                  "values": {"speed": 0.15}}).encode())
+    with urllib.request.urlopen(req, timeout=10) as r:
+        shape_id = json.loads(r.read())["id"]
     page = browser.new_page(viewport={"width": 1400, "height": 1000}, accept_downloads=True)
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
@@ -108,6 +119,7 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     page.select_option("#controller", "pid")
     page.fill("#target", "1.2")
     page.fill("#person", "P-007")
+    page.select_option("#workout-set", str(shape_id))
     t0 = time.monotonic()
     page.click("#start")
     expect(page.locator("#state")).to_have_text("running")
