@@ -5,7 +5,7 @@ parameters (the suite's oracle) and the rig's sensor noise switched off, so
 that what remains is the replay's, not the sensors'. Prints one JSON object:
 the chamber pressures' RMS error [bar] per log for each pair of log sample
 rate and replay step; at the station's rate, the same for the bare replay
-(its regulators' own sawtooth everywhere, ``rotary.CYCLE_MEAN_S = 0``) and
+(its regulators' own sawtooth everywhere, ``RotaryFamily(cycle_mean_s=0)``) and
 for the replay averaged over a window everywhere, steps included (what the
 family's prediction does only where the phase is lost); and the simulated
 rig's own chamber pressure over a PRV-step hold (mean, SD [bar]) at
@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from app.engine.diagnosis import protocol, rotary
+from app.engine.diagnosis import protocol
 from app.engine.diagnosis.protocol import run_protocol
 from app.engine.diagnosis.rotary import RotaryFamily
 from app.engine.diagnosis.suite import MAGNITUDES, perturbed, true_params
@@ -55,7 +55,6 @@ def main() -> dict[str, Any]:
     out: dict[str, Any] = {"case": f"{a.effect}:{a.magnitude}:{a.seed}", "rms_bar": [], "bare_replay_bar": {},
                            "averaged_everywhere_bar": {}}
     shown: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = []
-    mean_s = rotary.CYCLE_MEAN_S
     try:
         for rate in (rate0, 2000.0):
             protocol.RATE_HZ = rate
@@ -68,11 +67,8 @@ def main() -> dict[str, Any]:
                     y, m = fam.predict(prep, x, (a.effect,)), fam.measured(prep)
                     row[e.name] = {c: rms(y[c], m[c]) for c in PRESSURES}
                     if rate == rate0 and step_hz == 1000.0:
-                        try:
-                            rotary.CYCLE_MEAN_S = 0.0
-                            bare = RotaryFamily().predict(RotaryFamily().prepare(e), x, (a.effect,))
-                        finally:
-                            rotary.CYCLE_MEAN_S = mean_s
+                        bare_fam = RotaryFamily(cycle_mean_s=0.0)
+                        bare = bare_fam.predict(bare_fam.prepare(e), x, (a.effect,))
                         out["bare_replay_bar"][e.name] = {c: rms(bare[c], m[c]) for c in PRESSURES}
                         out["averaged_everywhere_bar"][e.name] = {
                             f"{w:g} s": {c: rms(uniform_filter1d(bare[c], max(1, round(w * rate)), mode="nearest"),

@@ -25,9 +25,10 @@ drive them, so a gap shows up in the equation that has it:
   sawtooth of 0.02–0.05 bar at 8–20 Hz. The replay cycles too, at the right
   level and amplitude, but a few cycles after the last command step it is
   out of phase with the rig, and two sawtooths out of phase differ by about
-  their own size. There, once :data:`PHASE_KEPT_S` has passed since the
-  chamber's last command step, the prediction is the replay's mean over
-  :data:`CYCLE_MEAN_S` (the expected reading when the phase is unknown);
+  their own size. There, once ``phase_kept_s`` (:data:`PHASE_KEPT_S`) has
+  passed since the chamber's last command step, the prediction is the
+  replay's mean over ``cycle_mean_s`` (:data:`CYCLE_MEAN_S`; the expected
+  reading when the phase is unknown);
   after a step, where the phase still holds, it is the replay itself.
 * **Supply** (channel ``p_s``): its level is a per-log constant (the shop
   regulator's setting that day), profiled out; its variation is predicted.
@@ -121,19 +122,21 @@ def _stuck(theta: np.ndarray, w: int) -> np.ndarray:
     return np.asarray(span < 0.5 * lsb)
 
 
-def _phase_lost(cmds: np.ndarray, dt: float) -> np.ndarray:
-    """Samples whose averaging window starts :data:`PHASE_KEPT_S` or more after a command step
-    (or the log's start).
+def _phase_lost(cmds: np.ndarray, dt: float, kept_s: float = PHASE_KEPT_S,
+                mean_s: float = CYCLE_MEAN_S) -> np.ndarray:
+    """Samples whose averaging window starts ``kept_s`` or more after a command step (or the log's start).
 
     Args:
         cmds: (n, 2) one chamber's PRV and DCV commands [V].
         dt: Sample interval [s].
+        kept_s: How long after a step the replay keeps the regulator's phase [s].
+        mean_s: The averaging window [s].
     """
     step = np.zeros(len(cmds), dtype=np.int64)
     step[1:] = (np.abs(np.diff(cmds, axis=0)) > STEP_V).any(axis=1)
     step[0] = 1  # the replay starts from what the sensors read: in phase
-    before = int(round(PHASE_KEPT_S / dt))
-    after = int(round(0.5 * CYCLE_MEAN_S / dt)) + 1  # the mean must not reach across the next step
+    before = int(round(kept_s / dt))
+    after = int(round(0.5 * mean_s / dt)) + 1  # the mean must not reach across the next step
     cs = np.concatenate([[0], np.cumsum(step)])
     i = np.arange(len(cmds))
     return np.asarray(cs[np.minimum(i + after + 1, len(cmds))] - cs[np.maximum(i - before, 0)] == 0)
@@ -279,6 +282,9 @@ class RotaryFamily:
             than ``cutoff_hz``: the friction's sign and Stribeck level change within
             a few milliseconds of a breakaway, which a 10 Hz speed smears over 50 ms;
             the friction column is then filtered at ``cutoff_hz`` with the rest.
+        phase_kept_s: How long after a chamber's command step the replay keeps its
+            regulator's phase [s]; from then on that chamber is predicted by the
+            replay's mean over ``cycle_mean_s`` [s] (0: the bare replay everywhere).
 
     Relevance: 0.01 bar on pressures (the PRV's rest deadband) and 0.02 N·m
     on torque (the torque sensor's resolution class, 0.2 % of its ±10 N·m).
@@ -310,7 +316,8 @@ class RotaryFamily:
                                     Param("dead_volume_scale", 1.0, 0.8, 1.25, "-", log=True))
 
     def __init__(self, nominal: PlantParams | None = None, cutoff_hz: float = 10.0, substep_hz: float = 1000.0,
-                 friction_speed_hz: float = 25.0) -> None:
+                 friction_speed_hz: float = 25.0, phase_kept_s: float = PHASE_KEPT_S,
+                 cycle_mean_s: float = CYCLE_MEAN_S) -> None:
         base = nominal or PlantParams()
         self.nominal = PlantParams(rig="rotary", vane=base.vane, friction=base.friction, prv=base.prv, dcv=base.dcv,
                                    supply=base.supply, sensors=base.sensors, human=HumanParams(0.0, 0.0, 1.0),
@@ -318,6 +325,8 @@ class RotaryFamily:
         self.kernel = pl.build_kernel(self.nominal)
         self.cutoff_hz = cutoff_hz
         self.friction_speed_hz = friction_speed_hz
+        self.phase_kept_s = phase_kept_s
+        self.cycle_mean_s = cycle_mean_s
         self.relevance: dict[str, float] = {"p_a": 0.01, "p_b": 0.01, "p_s": 0.01, "torque": 0.02}
 
     # ------------------------------------------------------------------ parameters
@@ -416,12 +425,13 @@ class RotaryFamily:
         }
         inputs = {"z_a": cmds[:, 0], "z_b": cmds[:, 1], "u_a": cmds[:, 2], "u_b": cmds[:, 3], "omega": omega}
         keep = slice(0, None, max(1, int(round(1.0 / (dt * SCORE_RATE_HZ)))))
-        phase_lost = (_phase_lost(cmds[:, [0, 2]], dt)[keep], _phase_lost(cmds[:, [1, 3]], dt)[keep])
+        lost_a, lost_b = (_phase_lost(cmds[:, cols], dt, self.phase_kept_s, self.cycle_mean_s)[keep]
+                          for cols in ([0, 2], [1, 3]))
         return RotaryPrep(exp.name, dt, cmds, np.ascontiguousarray(ch["theta"]), np.ascontiguousarray(omega), acc,
                           {c: ch[c] for c in ("p_a", "p_b", "p_s")}, tq_f, pa_f, pb_f,
                           np.asarray(ch["torque"], dtype=float), omega_fr,
                           ps0, noise, (b, a), {k: v[keep] for k, v in regimes.items()},
-                          {k: v[keep] for k, v in inputs.items()}, still, keep, phase_lost,
+                          {k: v[keep] for k, v in inputs.items()}, still, keep, (lost_a, lost_b),
                           exp.filled if exp.filled is not None and exp.filled.any() else None)
 
     def measured(self, prep: RotaryPrep) -> dict[str, np.ndarray]:
@@ -512,7 +522,7 @@ class RotaryFamily:
         stride = prep.keep.step or 1
         out = np.empty((-(-prep.cmds.shape[0] // stride), 3))
         replay_pneumatics(k, prep.cmds, prep.theta, prep.omega, x0, n_sub, stride, out)
-        width = int(round(CYCLE_MEAN_S / (prep.dt * stride)))
+        width = int(round(self.cycle_mean_s / (prep.dt * stride)))
         for c in (0, 1):
             out[:, c] = cycle_mean(out[:, c], prep.phase_lost[c], width)
         return out
