@@ -551,9 +551,8 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
         # The reference recalibrated its baseline without the effect, so some of its values
         # stand in for it (a missing heat exchange shrank the fitted dead volumes by a third).
         # On a rough cost surface a descent from there rarely travels back, so the grid runs
-        # with those parameters at their nominal values; the descent from the reference (the
-        # effect off or typical) keeps the fit never worse than it; the calibration cost decides.
-        f = fit(family, calib, effects, scales=scales, starts=starts, stop=stop)
+        # with those parameters at their nominal values; the reference's own starts (the effect
+        # off or typical) stay in the running, and the cheapest start is descended from.
         raise_if_stopped(stop)
         # an effect with a linear start needs no grid of its own, only that start from the
         # nominal values, taken again once the baseline's grid has moved them
@@ -568,8 +567,9 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
             st = _grid_start(family, calib, effects, st, grid_base, 3, scales)
             if lin is not None and linear is not None:
                 st = linear(calib, st, effects) or st
-        g = fit(family, calib, effects, scales=scales, stop=stop, start=st, free=rebase)
-        f = g if g.rss < f.rss else f
+        # One descent, not one from each: a least-squares descent never ends above its start, so
+        # the fit is still never worse than the reference (see docs/diagnosis.md, "One descent")
+        f = fit(family, calib, effects, scales=scales, stop=stop, starts=[*starts, st], free=rebase)
     else:
         if lin_ref is None and points and new:
             raise_if_stopped(stop)
