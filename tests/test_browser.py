@@ -358,12 +358,19 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
         if box.get_attribute("value") != "hold_closed":
             box.uncheck()
     page.fill("#rscale", "0.2")
+    page.fill("#rperson", "P-021")
     page.click("#go")
     expect(page.locator("#msg")).to_contain_text("hold_closed, repetition", timeout=15_000)
     expect(page.locator("#rstop")).to_be_visible()
     expect(page.locator("#msg")).to_contain_text("diagnosis", timeout=60_000)
     expect(page.locator("#verdict")).not_to_have_text("—", timeout=120_000)
     expect(page.locator("#detail")).to_contain_text("Held out: hold_closed-2")
+    # the person typed on the page went with the protocol's run and its experiments' runs
+    with urllib.request.urlopen(base + "/api/runs?kind=diagnosis_protocol&limit=1", timeout=10) as r:
+        (proto,) = json.loads(r.read())
+    assert proto["person"] == "P-021", proto
+    with urllib.request.urlopen(base + "/api/runs?kind=protocol&limit=2", timeout=10) as r:
+        assert [x["person"] for x in json.loads(r.read())] == ["P-021", "P-021"]
     assert not errors, errors
 
 

@@ -110,7 +110,16 @@ def test_the_station_runs_the_protocol_and_a_diagnosis_takes_its_runs(client: Te
     client.post("/api/engine/connect")
     r = client.post("/api/engine/protocol", json={"kinds": ["isometric"]})
     assert r.status_code == 422 and "isotonic" in json.dumps(r.json())  # the error lists what there is
-    r = client.post("/api/engine/protocol", json={"kinds": ["hold_closed"], "repetitions": 2, "scale": 0.2})
+    sess = client.post("/api/sessions", json={"person": "P-011", "notes": "right arm"}).json()
+    # who it is for is checked before anything moves
+    for body, words in (({"session_id": 424242}, "session 424242 does not exist"),
+                        ({"session_id": sess["id"], "person": "P-012"}, "differs from session"),
+                        ({"person": "Jane Doe"}, "pattern")):
+        r = client.post("/api/engine/protocol", json={"kinds": ["hold_closed"], "scale": 0.2, **body})
+        assert r.status_code == 422 and words in r.text, (body, r.text)
+        assert client.get("/api/engine").json()["state"] == "idle"
+    r = client.post("/api/engine/protocol", json={"kinds": ["hold_closed"], "repetitions": 2, "scale": 0.2,
+                                                  "session_id": sess["id"], "notes": "before the workout"})
     assert r.status_code == 200 and r.json()["status"]["state"] == "identifying"
     # each experiment is stored as it ends, not when the protocol does (a crash keeps the finished ones)
     deadline = time.monotonic() + 30.0
@@ -127,6 +136,13 @@ def test_the_station_runs_the_protocol_and_a_diagnosis_takes_its_runs(client: Te
     assert [g["name"] for g in run["result"]["logs"]] == ["hold_closed-1", "hold_closed-2"] and len(ids) == 2
     listed = client.get("/api/runs", params={"kind": "protocol"}).json()
     assert sorted(x["id"] for x in listed) == sorted(ids)
+    # the person and session go with the protocol's run, each experiment's run and each log
+    assert run["person"] == "P-011" and run["notes"] == "before the workout" and run["session_id"] == sess["id"]
+    assert all(x["person"] == "P-011" and x["session_id"] == sess["id"] for x in listed)
+    assert sorted(client.get(f"/api/sessions/{sess['id']}").json()["runs"]) == sorted([run["id"], *ids])
+    log_dir = Path(run["result"]["log_dir"])
+    assert all(json.loads((log_dir / f"{g['name']}.json").read_text())["person"] == "P-011"
+               for g in run["result"]["logs"])
     d = client.post("/api/diagnoses", json={"run_ids": ids})
     assert d.status_code == 202, d.text
     deadline = time.monotonic() + 120.0

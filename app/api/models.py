@@ -241,6 +241,10 @@ class ProtocolRunRequest(BaseModel):
         scale: Duration factor (1 ≈ 83 s of logs per repetition; each experiment
             also waits 1.5 s while the chambers reach its start pressure).
         kinds: Experiments to run (default all seven, in the protocol's order).
+        person: Pseudonymous id of the person at the handle (no names); three of the
+            experiments have them move it.
+        notes: Free text.
+        session_id: The therapy session the protocol belongs to (the person is taken from it).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -249,6 +253,9 @@ class ProtocolRunRequest(BaseModel):
     scale: float = Field(1.0, ge=0.2, le=10.0)
     kinds: list[Literal["prv_steps", "dcv_steps", "hold_closed", "fill_shut", "friction_sweep", "sine_sweep",
                         "isotonic"]] | None = Field(None, min_length=1, max_length=7)
+    person: str = Field("", max_length=64, pattern=r"^[A-Za-z0-9_.-]*$")
+    notes: str = Field("", max_length=2000)
+    session_id: int | None = Field(None, ge=1, le=2**62, description="therapy session (person taken from it)")
 
 
 Triple = tuple[Literal["filling", "exhausting"], float, float]

@@ -597,13 +597,17 @@ class Station:
             self._state = State.IDENTIFYING
             return self._run_id
 
-    def run_protocol(self, repetitions: int = 2, scale: float = 1.0, kinds: list[str] | None = None) -> int | None:
+    def run_protocol(self, repetitions: int = 2, scale: float = 1.0, kinds: list[str] | None = None,
+                     person: str = "", notes: str = "", session_id: int | None = None) -> int | None:
         """idle → identifying: the diagnosis protocol's experiments on the connected rotary rig.
 
         Each experiment's log is stored as a run of kind ``protocol`` as soon
         as it ran to its end (so a stop, a fault or a crash later keeps it);
         the protocol's own run lists them (``result.run_ids``: what a
         diagnosis takes). See :mod:`app.engine.diagnosis.rig_protocol`.
+        ``person`` (pseudonymous id) and ``session_id`` are kept with the
+        protocol's run, each experiment's run and each log's metadata;
+        ``notes`` with the protocol's run.
 
         Raises:
             ValueError: A bad argument, named (nothing moves).
@@ -618,10 +622,11 @@ class Station:
                                                + f"-{int(time.time() * 1e3) % 1000:03d}")
             sink = self.sink
             logs: list[dict[str, Any]] = []
+            who: dict[str, Any] = {"person": person, "session_id": session_id}
 
             def store_log(csv: Path, meta: dict[str, Any]) -> None:  # as each experiment ends: a crash later keeps it
                 rid = sink.run_started("protocol", {"experiment": meta["experiment"],
-                                                    "repetition": meta["repetition"], "log": csv.stem},
+                                                    "repetition": meta["repetition"], "log": csv.stem, **who},
                                        str(csv)) if sink else None
                 if sink is not None and rid is not None:
                     sink.run_finished(rid, "complete", None, {"log": csv.stem})
@@ -629,8 +634,8 @@ class Station:
 
             proc = ProtocolProcedure(outdir, repetitions, scale, kinds, rate_hz=self.rate_hz,
                                      backend=self.backend.name, set_program=getattr(self.backend, "set_program", None),
-                                     on_log=store_log)
-            spec = {"repetitions": repetitions, "scale": scale, "kinds": proc.kinds}
+                                     on_log=store_log, meta=who)
+            spec = {"repetitions": repetitions, "scale": scale, "kinds": proc.kinds, **who, "notes": notes}
 
             def store_logs(p: ProtocolProcedure) -> dict[str, Any]:
                 p.finish_logs()  # the writer has stored every finished experiment's log by now

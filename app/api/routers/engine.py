@@ -27,6 +27,7 @@ from app.api.models import (
 )
 from app.engine.params import ParameterError
 from app.engine.station import CONTROL_RATE_HZ, LIVE_COLUMNS, Rig, RunSpec
+from app.storage import Store
 
 router = APIRouter(prefix="/api", tags=["engine"])
 CONFLICT: dict[int | str, dict[str, Any]] = {409: {"description": "Illegal in the current state (says why)"},
@@ -73,17 +74,22 @@ def disconnect(station: StationDep) -> EngineStatus:
     return EngineStatus(**station.status())
 
 
+def _person(store: Store, person: str, session_id: int | None) -> str:
+    """Who the work is for: the session's person, which a person given too must match."""
+    if session_id is None:
+        return person
+    sess = store.session(session_id)
+    if sess is None:
+        raise ParameterError(f"session_id: session {session_id} does not exist")
+    if person and person != sess["person"]:
+        raise ParameterError(f"person: {person!r} differs from session {session_id}'s {sess['person']!r}")
+    return str(sess["person"])
+
+
 @router.post("/engine/start", dependencies=[THERAPIST], response_model=Started, responses=CONFLICT,
              summary="idle → running: a scenario run")
 def start(req: RunRequest, station: StationDep, store: StoreDep) -> Started:
-    person = req.person
-    if req.session_id is not None:
-        sess = store.session(req.session_id)
-        if sess is None:
-            raise ParameterError(f"session_id: session {req.session_id} does not exist")
-        if person and person != sess["person"]:
-            raise ParameterError(f"person: {person!r} differs from session {req.session_id}'s {sess['person']!r}")
-        person = sess["person"]
+    person = _person(store, req.person, req.session_id)
 
     def stored(field: str, set_id: int | None, kind: str) -> dict[str, Any] | None:
         if set_id is None:
@@ -205,13 +211,16 @@ def _identify(station: StationDep, proc: Any, estimator: Any, rig: str, spec: di
 
 @router.post("/engine/protocol", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
              summary="idle → identifying: the diagnosis protocol's experiments on the connected rotary rig")
-def run_protocol(req: ProtocolRunRequest, station: StationDep) -> Started:
+def run_protocol(req: ProtocolRunRequest, station: StationDep, store: StoreDep) -> Started:
     """Runs the experiments of ``GET /api/diagnoses/protocol`` through the engine on the rig
     (or the simulated one), at the station's rate; the progress says what the person at the handle should
     do. Each experiment that runs to its end is stored as a run of kind ``protocol`` with its log; the
-    protocol's own run lists them in ``result.run_ids``, what ``POST /api/diagnoses`` takes."""
+    protocol's own run lists them in ``result.run_ids``, what ``POST /api/diagnoses`` takes. The person
+    and session are kept with every one of those runs and in each log's metadata."""
+    person = _person(store, req.person, req.session_id)
     try:
-        run_id = station.run_protocol(req.repetitions, req.scale, list(dict.fromkeys(req.kinds or [])) or None)
+        run_id = station.run_protocol(req.repetitions, req.scale, list(dict.fromkeys(req.kinds or [])) or None,
+                                      person=person, notes=req.notes, session_id=req.session_id)
     except ValueError as exc:
         raise ParameterError(str(exc)) from None
     return Started(run_id=run_id, status=EngineStatus(**station.status()))

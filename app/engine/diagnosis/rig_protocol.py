@@ -132,6 +132,7 @@ class ProtocolProcedure(Procedure):
         on_log: Called with each log's CSV path and metadata as soon as its experiment ran to
             its end (in the writer thread: the station stores it as a run then,
             so a crash later loses none of the finished experiments).
+        meta: More metadata for every log (the station's person and session id).
 
     Raises:
         ValueError: A bad argument, named (nothing is created).
@@ -143,7 +144,8 @@ class ProtocolProcedure(Procedure):
     def __init__(self, outdir: Path | str, repetitions: int = 2, scale: float = 1.0,
                  kinds: Sequence[str] | None = None, rate_hz: float = 200.0, p_atm_bar: float = P_ATM / BAR,
                  backend: str = "sim", set_program: Callable[[HumanProgram], None] | None = None,
-                 on_log: Callable[[Path, dict[str, Any]], None] | None = None) -> None:
+                 on_log: Callable[[Path, dict[str, Any]], None] | None = None,
+                 meta: dict[str, Any] | None = None) -> None:
         super().__init__(vent_s=0.5)
         kinds = list(kinds) if kinds else list(KINDS)
         unknown = [k for k in kinds if k not in KINDS]
@@ -162,6 +164,7 @@ class ProtocolProcedure(Procedure):
         self.backend = backend
         self.set_program = set_program
         self.on_log = on_log
+        self.meta = dict(meta or {})
         self._logs: _LogWriter | None = None
         self._logging = False
 
@@ -204,7 +207,7 @@ class ProtocolProcedure(Procedure):
                 pressurise = max(PRESSURISE_S, HumanProgram.move_time(theta, 0.0) + 0.5)
             yield from self.hold(Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b), pressurise)
             name = f"{kind}-{rep + 1}"
-            meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": self.p_atm_bar,
+            meta = {**self.meta, "rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": self.p_atm_bar,
                     "working_pressure_bar": pw, "experiment": kind, "human": s.human if s is not None else True,
                     "repetition": rep + 1, "scale": self.scale, "backend": self.backend, "source": "station"}
             logs.open(self.outdir, name, meta)
