@@ -55,6 +55,7 @@ def main() -> dict[str, Any]:
     out: dict[str, Any] = {"case": f"{a.effect}:{a.magnitude}:{a.seed}", "rms_bar": [], "bare_replay_bar": {},
                            "averaged_everywhere_bar": {}}
     shown: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = []
+    bare_fam = RotaryFamily(cycle_mean_s=0.0)  # the replay's own sawtooth everywhere
     try:
         for rate in (rate0, 2000.0):
             protocol.RATE_HZ = rate
@@ -67,7 +68,6 @@ def main() -> dict[str, Any]:
                     y, m = fam.predict(prep, x, (a.effect,)), fam.measured(prep)
                     row[e.name] = {c: rms(y[c], m[c]) for c in PRESSURES}
                     if rate == rate0 and step_hz == 1000.0:
-                        bare_fam = RotaryFamily(cycle_mean_s=0.0)
                         bare = bare_fam.predict(bare_fam.prepare(e), x, (a.effect,))
                         out["bare_replay_bar"][e.name] = {c: rms(bare[c], m[c]) for c in PRESSURES}
                         out["averaged_everywhere_bar"][e.name] = {

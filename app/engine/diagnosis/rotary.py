@@ -284,7 +284,8 @@ class RotaryFamily:
             the friction column is then filtered at ``cutoff_hz`` with the rest.
         phase_kept_s: How long after a chamber's command step the replay keeps its
             regulator's phase [s]; from then on that chamber is predicted by the
-            replay's mean over ``cycle_mean_s`` [s] (0: the bare replay everywhere).
+            replay's mean over ``cycle_mean_s``.
+        cycle_mean_s: The window that mean is taken over [s] (0: the bare replay everywhere).
 
     Relevance: 0.01 bar on pressures (the PRV's rest deadband) and 0.02 N·m
     on torque (the torque sensor's resolution class, 0.2 % of its ±10 N·m).
