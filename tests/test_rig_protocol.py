@@ -151,6 +151,19 @@ def test_the_station_runs_the_protocol_and_a_diagnosis_takes_its_runs(client: Te
         time.sleep(0.5)
     assert rep["status"] == "complete", rep
     assert rep["result"]["experiments"]["held_out"] == ["hold_closed-2"]
+    # the diagnosis of one person's runs is that person's and that session's too
+    assert rep["person"] == "P-011" and rep["session_id"] == sess["id"], rep
+    assert rep["id"] in client.get(f"/api/sessions/{sess['id']}").json()["runs"]
+
+
+def test_a_diagnosis_takes_only_the_person_and_session_its_runs_share() -> None:
+    from app.api.routers.diagnoses import _common_who
+
+    a = {"person": "P-011", "session_id": 3}
+    assert _common_who([a, dict(a)]) == a
+    assert _common_who([a, {"person": "P-011", "session_id": None}]) == {"person": "P-011"}
+    assert _common_who([a, {"person": "P-012", "session_id": 3}]) == {"session_id": 3}
+    assert _common_who([{"person": "", "session_id": None}] * 2) == {}
 
 
 def test_an_emergency_stop_mid_protocol_keeps_the_finished_experiments(client: TestClient) -> None:

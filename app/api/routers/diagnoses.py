@@ -52,7 +52,10 @@ class ProtocolSource(BaseModel):
 
 
 class DiagnosisRequest(BaseModel):
-    """What to diagnose: ``protocol`` (simulated) or ``run_ids`` (stored runs with logs)."""
+    """What to diagnose: ``protocol`` (simulated) or ``run_ids`` (stored runs with logs).
+
+    A diagnosis of ``run_ids`` is stored with the person and therapy session its runs all share.
+    """
 
     protocol: ProtocolSource | None = None
     run_ids: list[Annotated[int, Field(ge=1, le=2**62)]] | None = Field(None, min_length=2, max_length=200)
@@ -149,6 +152,19 @@ def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, source
             log.exception("diagnosis %d failed and could not be recorded", run_id)
 
 
+def _common_who(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The person and therapy session all of a diagnosis's input runs share (a field they differ on is left out).
+
+    A diagnosis of one person's protocol runs is then listed with that person and session, like its inputs.
+    """
+    out: dict[str, Any] = {}
+    for key in ("person", "session_id"):
+        values = {r.get(key) for r in runs}
+        if len(values) == 1 and (v := values.pop()) not in (None, ""):
+            out[key] = v
+    return out
+
+
 @router.post("", response_model=DiagnosisStarted, status_code=202,
              responses={409: {"description": "A diagnosis is already running, or the server is stopping"}},
              summary="Start a gap diagnosis (protocol on the simulator, or stored runs); poll GET /api/runs/{id}")
@@ -156,6 +172,7 @@ def start(req: DiagnosisRequest, store: StoreDep, jobs: JobsDep, request: Reques
     if (req.protocol is None) == (req.run_ids is None):
         raise ParameterError("body = request: give exactly one of protocol or run_ids")
     sources: list[Path] = []
+    inputs: list[dict[str, Any]] = []
     for rid in req.run_ids or []:
         r = store.run(rid)
         if r is None:
@@ -164,6 +181,7 @@ def start(req: DiagnosisRequest, store: StoreDep, jobs: JobsDep, request: Reques
         if path is None or not path.is_file() or not path.with_suffix(".json").is_file():
             raise ParameterError(f"run_ids = {rid}: run {rid} has no log to replay")
         sources.append(path)
+        inputs.append(r)
     if len({s.stem for s in sources}) != len(sources):
         raise ParameterError("run_ids: two runs share a log name")
     if req.held_out:
@@ -179,7 +197,7 @@ def start(req: DiagnosisRequest, store: StoreDep, jobs: JobsDep, request: Reques
     if busy:
         raise HTTPException(409, busy)
     data_dir = Path(request.app.state.station.data_dir)
-    spec: dict[str, Any] = req.model_dump()
+    spec: dict[str, Any] = req.model_dump() | _common_who(inputs)
     run_id = store.run_started("diagnosis", spec, "")
     logdir = data_dir / "diagnoses" / f"diagnosis-{run_id}"
     try:
