@@ -354,7 +354,8 @@ def _diagnose(args: argparse.Namespace) -> int:
         uneven = r["experiments"].get("irregular_sampling", {})
         if uneven:
             print("  sampled unevenly (replayed on their own clock, samples missing from a log not scored): "
-                  + ", ".join(f"{n} ({u['irregular_intervals']} intervals off the median "
+                  + ", ".join(f"{n} ({u['irregular_intervals']} interval{'' if u['irregular_intervals'] == 1 else 's'}"
+                              " off the median "
                               f"{1e3 * u['median_interval_s']:.3g} ms, "
                               f"the longest {1e3 * u['largest_interval_s']:.3g} ms)" for n, u in uneven.items()))
     return 0
@@ -363,21 +364,22 @@ def _diagnose(args: argparse.Namespace) -> int:
 def _protocol(args: argparse.Namespace) -> int:
     """Run the diagnosis protocol on the simulated rig and write its logs (issue 6 §6)."""
     from app.engine.diagnosis.protocol import DESCRIPTION, VISIBLE, run_protocol
-    from app.engine.diagnosis.suite import MAGNITUDES, perturbed
-    from app.engine.params import PlantParams
+    from app.engine.diagnosis.suite import simulated_rig
 
     if not 0.0 <= args.param_error <= 0.5:
         raise ValueError(f"--param-error {args.param_error} is outside its allowed range [0, 0.5]")
     if not 0.2 <= args.scale <= 10.0:
         raise ValueError(f"--scale {args.scale} is outside its allowed range [0.2, 10]")
-    rig = perturbed(args.seed, args.param_error) if args.param_error > 0 else PlantParams()
+    effects: dict[str, int] = {}
     for spec in args.effect or []:
         name, _, mag = spec.partition(":")
-        if name not in MAGNITUDES:
-            raise ValueError(f"--effect {spec}: unknown effect {name!r}; known: {', '.join(MAGNITUDES)}")
         if mag not in ("", "1", "2"):
             raise ValueError(f"--effect {spec}: magnitude must be 1 (smaller) or 2 (larger)")
-        rig = rig.with_effects(**{name: MAGNITUDES[name][int(mag or 1) - 1]})
+        effects[name] = int(mag or 1)
+    try:
+        rig = simulated_rig(args.seed, args.param_error, args.errors, effects)
+    except ValueError as exc:
+        raise ValueError(f"--effect: {exc}") from exc
     exps = run_protocol(rig, seed=args.seed, scale=args.scale, outdir=args.outdir)
     for kind in VISIBLE:
         print(f"{kind:15s} {DESCRIPTION[kind]}; shows {', '.join(VISIBLE[kind])}")
@@ -452,7 +454,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="effects to switch on in the simulated rig, NAME or NAME:1|2 (magnitude)")
     q.add_argument("--param-error", type=float, default=0.0,
                    help="random error on the recalibratable nominal parameters, e.g. 0.2 for ±20 %%")
-    q.add_argument("--scale", type=float, default=1.0, help="duration factor (1: ≈ 70 s per repetition)")
+    q.add_argument("--errors", choices=("grouped", "each"), default="grouped",
+                   help="one error per group the baseline recalibrates (all friction levels by one factor, "
+                        "both PRV capacities by one), or one per parameter (default: grouped)")
+    q.add_argument("--scale", type=float, default=1.0, help="duration factor (1: ≈ 83 s of logs per repetition)")
     q.add_argument("--seed", type=int, default=0)
     q.set_defaults(fn=_protocol)
     v = sub.add_parser("serve", help="start the lab station server on the simulated plant")

@@ -22,6 +22,7 @@ def _join(client: TestClient, run_id: int) -> None:
     ({"protocol": {}, "run_ids": [1, 2]}, "body", "exactly one of protocol or run_ids"),
     ({"protocol": {"effects": ["friction"]}}, "effects", ""),
     ({"protocol": {"param_error": 0.9}}, "param_error", ""),
+    ({"protocol": {"errors": "every"}}, "errors", "'grouped' or 'each'"),
     ({"run_ids": [1, 2]}, "run_ids", "run 1 does not exist"),
     ({"protocol": {}, "held_out": ["hold-9"]}, "held_out", "no log of that name"),
 ])

@@ -15,6 +15,7 @@ import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -317,6 +318,21 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#protocol")).to_contain_text("fill_shut")
     expect(page.locator("#protocol")).to_contain_text("heat transfer, external leakage, vane leakage")
     expect(page.locator("#effects input")).to_have_count(9)  # one check box per candidate the engine names
+    # a simulated rig off parameter by parameter: what the page asks for (answered here, nothing runs)
+    sent: list[dict[str, Any]] = []
+
+    def refuse(route: Any) -> None:
+        sent.append(json.loads(route.request.post_data or "{}"))
+        route.fulfill(status=409, content_type="application/json", body='{"detail": "not now (test)"}')
+
+    page.route("**/api/diagnoses", refuse)
+    page.check("#effects input[value=heat_transfer]")
+    page.select_option("#errs", "each")
+    page.click("#go")
+    expect(page.locator("#msg")).to_contain_text("not now (test)")
+    assert sent == [{"protocol": {"effects": ["heat_transfer"], "magnitude": 2, "param_error": 0.2,
+                                  "errors": "each", "seed": 0, "scale": 1}}], sent
+    page.unroute("**/api/diagnoses")
     page.select_option("#src", "files")
     expect(page.locator("#logfiles")).to_be_visible()
     page.set_input_files("#logfiles", good[:1])

@@ -336,6 +336,40 @@ def test_cwrr_protocol_refuses_bad_arguments_and_writes_nothing(tmp_path: Path, 
     assert not (tmp_path / "logs").exists()
 
 
+def test_a_simulated_rig_is_off_by_group_or_parameter_by_parameter() -> None:
+    """``errors='grouped'`` scales every friction level by one factor, as the baseline recalibrates;
+    ``'each'`` gives each table entry and each PRV capacity an error of its own."""
+    from app.engine.diagnosis.suite import simulated_rig
+
+    nom = PlantParams()
+
+    def ratios(rig: PlantParams) -> np.ndarray:
+        return np.array([*(np.array(rig.friction.ts_ccw) / nom.friction.ts_ccw),
+                         *(np.array(rig.friction.ts_cw) / nom.friction.ts_cw),
+                         rig.prv.c_supply / nom.prv.c_supply, rig.prv.c_exhaust / nom.prv.c_exhaust])
+
+    grouped, each = ratios(simulated_rig(5, 0.2)), ratios(simulated_rig(5, 0.2, "each"))
+    assert np.ptp(grouped[:-2]) < 1e-12 and abs(grouped[-1] - grouped[-2]) < 1e-12
+    assert np.ptp(each[:-2]) > 0.02 and abs(each[-1] - each[-2]) > 1e-6
+    assert np.all(np.abs(each - 1.0) <= 0.2 + 1e-12)
+    assert simulated_rig(5, 0.0, "each") == nom  # no error: the nominal rig either way
+    assert simulated_rig(5, 0.2, effects={"vane_leakage": 2}).effects.active() == ["vane_leakage"]
+    with pytest.raises(ValueError, match="errors = 'every'"):
+        simulated_rig(5, 0.2, "every")
+
+
+def test_cwrr_protocol_draws_errors_parameter_by_parameter(tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    from app.cli import main
+
+    assert main(["protocol", str(tmp_path), "--param-error", "0.2", "--errors", "each", "--scale", "0.2",
+                 "--effect", "vane_leakage"]) == 0
+    assert "14 logs written" in capsys.readouterr().out and len(list(tmp_path.glob("*.csv"))) == 14
+    with pytest.raises(SystemExit):
+        main(["protocol", str(tmp_path / "x"), "--errors", "every"])
+    assert "invalid choice: 'every'" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
 @pytest.mark.slow
 def test_withheld_sensor_bias_through_the_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """End to end as a researcher would: run the protocol on a rig with offsets on its sensors and

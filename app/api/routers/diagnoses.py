@@ -40,6 +40,10 @@ class ProtocolSource(BaseModel):
         effects: Effects switched on in the simulated rig (the diagnosed model lacks them).
         magnitude: 1 (smaller) or 2 (larger) of the suite's two magnitudes.
         param_error: Random error on the recalibratable nominal parameters (0.2 = ±20 %).
+        errors: How the errors are drawn: ``grouped``, one per group the baseline
+            recalibrates (all friction levels by one factor, both PRV capacities by
+            one), or ``each``, one per parameter (every friction-table entry, each
+            PRV capacity and dead volume), which the baseline can only approximate.
         seed: Seed of the parameter errors and the sensor noise.
         scale: Duration factor (1 ≈ 83 s of logs per repetition).
     """
@@ -47,6 +51,7 @@ class ProtocolSource(BaseModel):
     effects: list[EffectName] = Field(default_factory=list, max_length=9)
     magnitude: Annotated[int, Field(ge=1, le=2)] = 2
     param_error: Annotated[float, Field(ge=0.0, le=0.5)] = 0.0
+    errors: Literal["grouped", "each"] = "grouped"
     seed: Annotated[int, Field(ge=0, le=2**31)] = 0
     scale: Annotated[float, Field(ge=0.2, le=10.0)] = 1.0
 
@@ -122,14 +127,12 @@ def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, source
     from app.engine.diagnosis.core import Cancelled
     from app.engine.diagnosis.protocol import run_protocol
     from app.engine.diagnosis.run import diagnose_dir
-    from app.engine.diagnosis.suite import MAGNITUDES, perturbed
-    from app.engine.params import PlantParams
+    from app.engine.diagnosis.suite import simulated_rig
 
     try:
         if req.protocol is not None:
             p = req.protocol
-            rig = perturbed(p.seed, p.param_error) if p.param_error > 0 else PlantParams()
-            rig = rig.with_effects(**{e: MAGNITUDES[e][p.magnitude - 1] for e in p.effects})
+            rig = simulated_rig(p.seed, p.param_error, p.errors, dict.fromkeys(p.effects, p.magnitude))
             run_protocol(rig, seed=p.seed, scale=p.scale, outdir=logdir, stop=stop)
         else:
             logdir.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, replace
 from typing import Any
 
@@ -135,8 +135,35 @@ def perturbed_each(seed: int, spread: float = 0.2) -> PlantParams:
     )
 
 
-ERRORS: dict[str, Callable[[int], PlantParams]] = {"grouped": perturbed, "each": perturbed_each}
+ERRORS: dict[str, Callable[[int, float], PlantParams]] = {"grouped": perturbed, "each": perturbed_each}
 """How a case's rig is off nominal: by group (what the baseline recalibrates) or parameter by parameter."""
+
+
+def simulated_rig(seed: int = 0, param_error: float = 0.0, errors: str = "grouped",
+                  effects: Mapping[str, int] | None = None) -> PlantParams:
+    """The simulated rig a protocol runs on (``cwrr protocol``, ``POST /api/diagnoses``).
+
+    Args:
+        seed: Seed of the parameter errors.
+        param_error: Their spread (0.2 = ±20 %; 0: the nominal rig).
+        errors: ``grouped`` (:func:`perturbed`) or ``each`` (:func:`perturbed_each`).
+        effects: Effect → magnitude, 1 (smaller) or 2 (larger) of :data:`MAGNITUDES`.
+
+    Raises:
+        ValueError: An unknown error kind, effect or magnitude, or a spread outside [0, 0.5].
+    """
+    if errors not in ERRORS:
+        raise ValueError(f"errors = {errors!r}: must be one of {', '.join(ERRORS)}")
+    if not 0.0 <= param_error <= 0.5:
+        raise ValueError(f"param_error = {param_error}: outside its allowed range [0, 0.5]")
+    rig = ERRORS[errors](seed, param_error) if param_error > 0 else PlantParams()
+    for name, mag in (effects or {}).items():
+        if name not in MAGNITUDES:
+            raise ValueError(f"unknown effect {name!r}; known: {', '.join(MAGNITUDES)}")
+        if mag not in (1, 2):
+            raise ValueError(f"effect {name}: magnitude {mag} must be 1 (smaller) or 2 (larger)")
+        rig = rig.with_effects(**{name: MAGNITUDES[name][mag - 1]})
+    return rig
 
 
 def true_params(rig: PlantParams, effect: str | None) -> dict[str, float]:
@@ -209,7 +236,7 @@ def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float
     """
     if errors not in ERRORS:
         raise ValueError(f"no parameter-error kind {errors!r}; known: {', '.join(ERRORS)}")
-    rig = ERRORS[errors](seed)
+    rig = ERRORS[errors](seed, 0.2)  # the issue's ±20 %
     if structural is not None:
         if structural not in STRUCTURAL:
             raise ValueError(f"no structural variant {structural!r}; known: {', '.join(STRUCTURAL)}")
