@@ -35,6 +35,11 @@ def _instructions() -> list[tuple[str, str]]:
     return out
 
 
+def user_of(ins: list[tuple[str, str]]) -> str:
+    """The last USER instruction's argument."""
+    return [a for op, a in ins if op == "USER"][-1]
+
+
 def test_the_dockerfile_promises_what_the_issue_asks() -> None:
     ins = _instructions()
     ops = {op for op, _ in ins}
@@ -84,6 +89,18 @@ def test_the_install_steps_work_in_a_fresh_venv(tmp_path: Path) -> None:
         r = subprocess.run([str(venv / "bin" / "pip"), *argv[1:]], cwd=work, capture_output=True, text=True,
                            timeout=900)
         assert r.returncode == 0, r.stderr[-3000:]
+    env = {**os.environ, **env_vars, "CWRR_DATA_DIR": str(tmp_path / "data"), "NUMBA_CACHE_DIR": str(tmp_path / "nb"),
+           "PATH": f"{venv / 'bin'}:{os.environ.get('PATH', '')}"}
+    env.pop("PYTHONPATH", None)  # the installed package, not this checkout
+    # the build compiles the numba kernels into the image's cache, as the user the container runs as
+    warm_steps = [a for op, a in ins if op == "RUN" and a.startswith("python -m app.engine.warm")]
+    assert warm_steps and ins.index(("RUN", warm_steps[0])) > ins.index(("USER", user_of(ins)))
+    for step in warm_steps:
+        r = subprocess.run([str(venv / "bin" / "python"), *shlex.split(step)[1:]], cwd=tmp_path, env=env,
+                           capture_output=True, text=True, timeout=900)
+        assert r.returncode == 0 and "compiled: sim" in r.stdout, r.stderr[-3000:]
+    cached = {p.name.split(".")[0] for p in (tmp_path / "nb").rglob("*.nbi")}
+    assert {"sim", "plant", "rotary"} <= cached, cached  # the simulator's and the replay's kernels
 
     # the image's CMD with its ENV (the /data volume becomes a scratch folder), then its HEALTHCHECK
     with socket.socket() as s:
@@ -96,9 +113,6 @@ def test_the_install_steps_work_in_a_fresh_venv(tmp_path: Path) -> None:
     argv[argv.index("--port") + 1] = str(port)
     argv[argv.index("--viser-port") + 1] = "0"
     assert argv[argv.index("--host") + 1] == "0.0.0.0"
-    env = {**os.environ, **env_vars, "CWRR_DATA_DIR": str(tmp_path / "data"), "NUMBA_CACHE_DIR": str(tmp_path / "nb"),
-           "PATH": f"{venv / 'bin'}:{os.environ.get('PATH', '')}"}
-    env.pop("PYTHONPATH", None)  # the installed package, not this checkout
     for k in ("CWRR_ADMIN_TOKEN", "CWRR_THERAPIST_TOKEN"):
         env.pop(k, None)
     # a container without a token must not open the rig to the network: it exits and says why

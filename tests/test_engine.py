@@ -241,3 +241,12 @@ def test_live_window_is_thinned_on_a_fixed_grid_and_ends_at_the_newest_row() -> 
     assert whole[0] == 3004 - 2000 and np.all(np.diff(whole) == 1)
     buf.clear()
     assert buf.window(1.0, 10)[0] == 0
+
+
+def test_the_warm_up_runs_its_parts_and_refuses_an_unknown_one(capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m app.engine.warm``: what the Docker build and ``./dev test`` run before anything else."""
+    from app.engine.warm import PARTS, main, warm
+
+    assert set(warm(["replay"])) == {"replay"} and set(PARTS) == {"sim", "replay"}
+    assert main(["sim"]) == 0 and "compiled: sim" in capsys.readouterr().out
+    assert main(["all"]) == 2 and "no warm-up part all; known: sim, replay" in capsys.readouterr().err
