@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+# who a run is for, as every request that starts one takes it
+PersonId = Annotated[str, Field(max_length=64, pattern=r"^[A-Za-z0-9_.-]*$")]
+Notes = Annotated[str, Field(max_length=2000)]
+SessionRef = Annotated[int | None, Field(ge=1, le=2**62, description="therapy session (person taken from it)")]
 
 
 class Health(BaseModel):
@@ -131,9 +136,9 @@ class RunRequest(BaseModel):
     controller: Literal["default", "pid", "fuzzy"] = "pid"
     target_nm: float = Field(1.2, ge=-3.0, le=3.0, description="N·m, signed")
     pw_bar: float = Field(3.0, ge=1.5, le=6.0, description="bar abs")
-    person: str = Field("", max_length=64, pattern=r"^[A-Za-z0-9_.-]*$")
-    notes: str = Field("", max_length=2000)
-    session_id: int | None = Field(None, ge=1, le=2**62, description="therapy session (person taken from it)")
+    person: PersonId = ""
+    notes: Notes = ""
+    session_id: SessionRef = None
     workout_id: int | None = Field(None, ge=1, le=2**62, description="stored workout parameter set")
     gains_id: int | None = Field(None, ge=1, le=2**62, description="stored Cascade PID gain set")
     fuzzy_id: int | None = Field(None, ge=1, le=2**62, description="stored fuzzy MF set")
@@ -188,7 +193,7 @@ class SessionIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     person: str = Field(..., min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
-    notes: str = Field("", max_length=2000)
+    notes: Notes = ""
 
 
 class Session(BaseModel):
@@ -253,9 +258,9 @@ class ProtocolRunRequest(BaseModel):
     scale: float = Field(1.0, ge=0.2, le=10.0)
     kinds: list[Literal["prv_steps", "dcv_steps", "hold_closed", "fill_shut", "friction_sweep", "sine_sweep",
                         "isotonic"]] | None = Field(None, min_length=1, max_length=7)
-    person: str = Field("", max_length=64, pattern=r"^[A-Za-z0-9_.-]*$")
-    notes: str = Field("", max_length=2000)
-    session_id: int | None = Field(None, ge=1, le=2**62, description="therapy session (person taken from it)")
+    person: PersonId = ""
+    notes: Notes = ""
+    session_id: SessionRef = None
 
 
 Triple = tuple[Literal["filling", "exhausting"], float, float]
