@@ -128,6 +128,41 @@ def test_runlog_is_durable_before_close(tmp_path) -> None:
     assert json.loads((tmp_path / "live.json").read_text())["status"] == "interrupted"
 
 
+def test_a_stalled_fsync_does_not_hold_rows_back_from_the_kernel(tmp_path, monkeypatch) -> None:
+    """Issue 7 item 5: a disk busy elsewhere can stall ``fsync`` for most of a second (a CI
+    machine installing packages beside the station did: a killed server lost 1.05 s). The
+    threaded writer keeps handing rows to the kernel, where a killed process's rows survive."""
+    import os
+    import threading
+    import time
+
+    from app.engine import runlog
+
+    release = threading.Event()
+    syncing = threading.Event()
+    real_fsync = os.fsync
+
+    def stalled_fsync(fd: int) -> None:
+        syncing.set()
+        release.wait(10.0)
+        real_fsync(fd)
+
+    w = RunLogWriter(tmp_path, "busy", META, threaded=True, flush_every_s=0.3, write_every_s=0.05)
+    monkeypatch.setattr(runlog.os, "fsync", stalled_fsync)
+    try:
+        assert syncing.wait(5.0), "the sync thread never synced"
+        for i in range(20):
+            w.append([i * 0.005] + [0.0] * 10)
+        deadline = time.monotonic() + 5.0
+        while len((tmp_path / "busy.csv").read_text().splitlines()) < 21:
+            assert time.monotonic() < deadline, "rows waited for the stalled fsync"
+            time.sleep(0.01)
+    finally:
+        release.set()
+        w.close()
+    assert len((tmp_path / "busy.csv").read_text().splitlines()) == 21
+
+
 def test_a_log_written_late_in_a_long_session_keeps_every_sample_time_apart(tmp_path) -> None:
     """The station's clock counts from connect: after a morning of therapy a 500 Hz run's times
     are ~10⁴ s, where six significant digits would round neighbouring samples together (and the

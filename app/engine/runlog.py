@@ -1,14 +1,18 @@
 """Run logs: the fixed ``NAME.csv`` + ``NAME.json`` pair, appended as the run goes.
 
-Durability: rows are buffered and flushed with ``fsync`` at least once per
-``flush_every_s`` of wall time (default 0.5 s), so a crash or ``kill -9``
-loses at most the last second. With ``threaded=True`` (the paced engine) a
-writer thread does the writing and the ``fsync``: a disk busy with something
-else can stall an ``fsync`` for hundreds of milliseconds, and the control
-loop must not wait for it. The JSON metadata is written atomically
-(temporary file + rename) at the start with ``"status": "running"`` and
-rewritten at the end with ``"complete"`` (or ``"interrupted"``), so a reader
-never sees a half-written JSON.
+Durability: rows are buffered and handed to the operating system at least
+once per ``write_every_s`` of wall time (default 0.2 s) and made durable with
+``fsync`` at least once per ``flush_every_s`` (default 0.5 s). A ``kill -9``
+of the process loses only what the operating system had not been handed (the
+kernel keeps what was written), an operating-system crash what had not been
+synced: both well inside the last second. With ``threaded=True`` (the paced
+engine) two threads do this, one writing and one syncing: a disk busy with
+something else (a CI machine installing packages beside the station) can
+stall an ``fsync`` for most of a second, and neither the control loop nor the
+hand-over of rows to the kernel may wait for it. The JSON metadata is written
+atomically (temporary file + rename) at the start with ``"status":
+"running"`` and rewritten at the end with ``"complete"`` (or
+``"interrupted"``), so a reader never sees a half-written JSON.
 """
 
 from __future__ import annotations
@@ -46,14 +50,16 @@ class RunLogWriter:
         meta: Metadata; must hold the fixed keys ``rig``,
             ``sample_rate_hz``, ``p_atm_bar``, ``working_pressure_bar``,
             ``experiment``, ``human``.
-        flush_every_s: Longest wall time between durable flushes [s].
-        threaded: Write and ``fsync`` from a background thread (``append`` never touches the disk).
+        flush_every_s: Longest wall time between durable flushes (``fsync``) [s].
+        threaded: Write and ``fsync`` from background threads (``append`` never touches the disk).
+        write_every_s: With ``threaded``, longest wall time between hand-overs of rows to the
+            operating system [s] (what a killed process can lose).
     """
 
     REQUIRED_META = ("rig", "sample_rate_hz", "p_atm_bar", "working_pressure_bar", "experiment", "human")
 
     def __init__(self, directory: Path | str, name: str, meta: dict[str, Any], flush_every_s: float = 0.5,
-                 threaded: bool = False) -> None:
+                 threaded: bool = False, write_every_s: float = 0.2) -> None:
         if not _NAME.match(name):
             raise ValueError(f"log name {name!r} must be 1–128 characters of letters, digits, '_', '.', '-'")
         missing = [k for k in self.REQUIRED_META if k not in meta]
@@ -68,6 +74,7 @@ class RunLogWriter:
             raise FileExistsError(f"log {self.csv_path} already exists")
         self.meta = dict(meta, status="running", started_unix=time.time(), columns=list(LOG_COLUMNS))
         self.flush_every_s = flush_every_s
+        self.write_every_s = min(write_every_s, flush_every_s)
         self._fh = open(self.csv_path, "w", encoding="utf-8", newline="")
         self._fh.write(",".join(LOG_COLUMNS) + "\n")
         self._buf: list[str] = []
@@ -78,14 +85,30 @@ class RunLogWriter:
         self._sync()
         atomic_write_text(self.json_path, json.dumps(self.meta, indent=1))
         self._done = threading.Event()
-        self._writer: threading.Thread | None = None
+        self._threads: list[threading.Thread] = []
         if threaded:
-            self._writer = threading.Thread(target=self._write_loop, name=f"cwrr-log-{name}", daemon=True)
-            self._writer.start()
+            self._threads = [threading.Thread(target=self._write_loop, name=f"cwrr-log-{name}", daemon=True),
+                             threading.Thread(target=self._sync_loop, name=f"cwrr-sync-{name}", daemon=True)]
+            for th in self._threads:
+                th.start()
 
     def _write_loop(self) -> None:
+        while not self._done.wait(self.write_every_s):
+            self._write()
+
+    def _sync_loop(self) -> None:
+        # apart from the writer: an fsync that waits on a busy disk holds up neither the next
+        # hand-over of rows to the kernel nor the loop; it syncs what was written until it began
         while not self._done.wait(self.flush_every_s):
-            self.flush()
+            with self._io_lock:
+                if self._fh.closed:
+                    return
+                fd = self._fh.fileno()
+            try:
+                os.fsync(fd)  # close() joins this thread (for up to 10 s) before it closes fd
+            except OSError:
+                return  # closed after all, by a close() that stopped waiting for this sync
+            self._last_flush = time.monotonic()
 
     @staticmethod
     def _line(row: Iterable[float]) -> str:
@@ -100,7 +123,7 @@ class RunLogWriter:
         with self._buf_lock:
             self._buf.append(line)
             self.rows += 1
-        if self._writer is None and time.monotonic() - self._last_flush >= self.flush_every_s:
+        if not self._threads and time.monotonic() - self._last_flush >= self.flush_every_s:
             self.flush()
 
     def append_many(self, rows: Any) -> None:
@@ -113,14 +136,20 @@ class RunLogWriter:
 
     def flush(self) -> None:
         """Write the buffered rows durably."""
+        if self._write():
+            self._sync()
+
+    def _write(self) -> bool:
+        """Hand the buffered rows to the operating system; False once the file is closed."""
         with self._io_lock:
             with self._buf_lock:
                 lines, self._buf = self._buf, []
             if self._fh.closed:
-                return
+                return False
             if lines:
                 self._fh.write("\n".join(lines) + "\n")
-            self._sync()
+                self._fh.flush()
+            return True
 
     def _sync(self) -> None:
         self._fh.flush()
@@ -132,8 +161,8 @@ class RunLogWriter:
         if self._fh.closed:
             return
         self._done.set()
-        if self._writer is not None:
-            self._writer.join(10.0)
+        for th in self._threads:
+            th.join(10.0)
         self.flush()
         with self._io_lock:
             self._fh.close()
