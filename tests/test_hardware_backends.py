@@ -401,7 +401,7 @@ def test_the_backend_is_chosen_by_the_configuration_file_alone(tmp_path: Path) -
 def test_calibration_zeroes_the_torque_pressures_and_encoder_and_saves_them_with_the_date(tmp_path: Path) -> None:
     import datetime
 
-    from app.engine.human import HumanProgram, isotonic
+    from app.engine.human import isotonic
     from app.engine.station import Station, TransitionError
     from tests.test_hardware_modbus import HILFactory
 
@@ -447,9 +447,8 @@ def test_calibration_zeroes_the_torque_pressures_and_encoder_and_saves_them_with
         # a rig that is not at rest is refused, and nothing changes
         from app.engine.params import ParameterError
 
-        plant = factory.servers[-1].rig
         prog = isotonic(+1, repetitions=4)
-        plant.set_program(HumanProgram(prog.t + plant.sim.t, prog.pos))  # someone turns the handle
+        factory.plants[-1].program_from_now(prog.t, prog.pos)  # someone turns the handle
         time.sleep(2.5)
         with pytest.raises(ParameterError, match="hold it still"):
             st.calibrate("encoder_zero", seconds=0.5)
@@ -496,3 +495,29 @@ def test_the_simulated_rig_never_samples_the_same_instant_twice() -> None:
         ts.append(rig.read().t)
     assert all(b > a for a, b in itertools.pairwise(ts)), ts
     assert ts[-1] == pytest.approx(clock.now(), abs=2 * rig.sim.kernel.h)  # and it does not run ahead
+
+
+def test_the_simulated_rig_holds_every_written_command_and_reports_what_it_applied() -> None:
+    """``write`` skips setting the plant's command again when it is handed the very command it
+    holds (a procedure yields one object for seconds): activation's safe command, a held one, a
+    clipped one and a return to a previous one must each still reach the plant."""
+    from app.engine.hardware.base import SAFE_COMMAND
+    from app.engine.hardware.sim import SimulatedRig
+
+    rig = SimulatedRig(SimClock())
+    held = lambda: tuple(float(v) for v in rig.sim.cmd[:4])
+    rig.sim.cmd[:4] = (9.0, 9.0, 9.0, 9.0)  # whatever the simulator starts with, activation overrides it
+    rig.activate()
+    assert held() == (SAFE_COMMAND.z_a, SAFE_COMMAND.z_b, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
+    fill = Command(3.0, 1.0, 0.0, 10.0)
+    for _ in range(3):
+        assert rig.write(fill) is fill and rig.last_applied is fill
+    assert held() == (3.0, 1.0, 0.0, 10.0)
+    over = Command(3.0, 1.0, 12.0, float("nan"))
+    applied = rig.write(over)
+    assert (applied.u_a, applied.u_b) == (10.0, 10.0) and rig.last_applied is applied
+    assert held() == (3.0, 1.0, 10.0, 10.0)
+    rig.write(fill)  # back to the earlier object
+    assert held() == (3.0, 1.0, 0.0, 10.0)
+    rig.deactivate()
+    assert held() == (SAFE_COMMAND.z_a, SAFE_COMMAND.z_b, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)

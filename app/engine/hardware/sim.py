@@ -16,6 +16,9 @@ from app.engine.params import PlantParams
 from app.engine.physics import sensors as sn
 from app.engine.sim import Simulator
 
+# read() unpacks the measurement vector in this order
+assert (sn.M_PA, sn.M_PB, sn.M_PS, sn.M_POS, sn.M_VEL, sn.M_TQ, sn.NM) == (0, 1, 2, 3, 4, 5, 6)
+
 
 class ClockLike(Protocol):
     """Anything that tells the time [s]."""
@@ -59,6 +62,7 @@ class SimulatedRig(HardwareInterface):
         self._read_before = False
         self.active = False
         self.last_applied = self.safe_command()
+        self._held: Command | None = None  # what the plant's command vector was last set to by write()
 
     def activate(self) -> None:
         """Start the plant at the current clock time in the safe state."""
@@ -108,13 +112,16 @@ class SimulatedRig(HardwareInterface):
         if self._read_before:
             t = max(t, self.sim.t + self.sim.kernel.h)
         self._read_before = True
-        m = self.sim.advance_and_measure(t, self.period)
-        return Measurement(self.sim.t, float(m[sn.M_PA]), float(m[sn.M_PB]), float(m[sn.M_PS]),
-                           float(m[sn.M_POS]), float(m[sn.M_VEL]), float(m[sn.M_TQ]))
+        # one conversion of the whole vector (in the order of the Measurement's fields) rather than
+        # six element reads: the per-period path, where Python's overhead costs as much as the physics
+        pa, pb, ps, pos, vel, tq = self.sim.advance_and_measure(t, self.period).tolist()
+        return Measurement(self.sim.t, pa, pb, ps, pos, vel, tq)
 
     def write(self, command: Command) -> Command:
         """Clip to the valves' input ranges and hold."""
         applied = command.clipped(self.params.prv.z_max_v)
-        self.sim.set_command(applied.z_a, applied.z_b, applied.u_a, applied.u_b)
+        if applied is not self._held:  # the same (frozen) command again: the plant holds it already
+            self.sim.set_command(applied.z_a, applied.z_b, applied.u_a, applied.u_b)
+            self._held = applied
         self.last_applied = applied
         return applied
