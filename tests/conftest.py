@@ -51,6 +51,74 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+class ServedStation:
+    """``cwrr serve`` in a process of its own, as the README's first command starts it.
+
+    Unlike :func:`live_server` (the app in a thread of the test's process), its
+    threads rank as the served station's do (``cwrr serve`` puts them above
+    normal ones where the OS allows it), and nothing of the test's own
+    process (a browser driver, the test itself) shares its interpreter lock.
+
+    Args:
+        data_dir: The station's data folder (``CWRR_DATA_DIR``); its log goes there too.
+        viser_port: The viser port (0: viser off).
+        **env: Further settings as environment variables (``CWRR_...``).
+    """
+
+    ROOT = Path(__file__).resolve().parent.parent
+
+    def __init__(self, data_dir: Path, viser_port: int = 0, **env: str) -> None:
+        import subprocess
+        import sys
+        import time
+
+        import httpx2 as httpx
+
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        full = dict(os.environ, CWRR_DATA_DIR=str(data_dir), PYTHONPATH=str(self.ROOT))
+        for k in ("CWRR_ADMIN_TOKEN", "CWRR_THERAPIST_TOKEN"):
+            full.pop(k, None)
+        full.update(env)
+        data_dir.mkdir(parents=True, exist_ok=True)
+        self.log = open(data_dir / f"server-{self.port}.log", "wb")
+        self.proc = subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", str(self.port),
+                                      "--viser-port", str(viser_port)], cwd=self.ROOT, env=full,
+                                     stdout=self.log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 180
+        while True:
+            assert self.proc.poll() is None, f"server exited with {self.proc.returncode}"
+            try:
+                if httpx.get(self.url + "/api/health", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            assert time.monotonic() < deadline, "server did not come up"
+            time.sleep(0.2)
+
+    def api(self, method: str, path: str, **kw: Any) -> Any:
+        """One request; asserts success and returns the JSON answer."""
+        import httpx2 as httpx
+
+        r = httpx.request(method, self.url + path, timeout=30, **kw)
+        assert r.status_code < 300, (path, r.status_code, r.text)
+        return r.json()
+
+    def stop(self, sig: int | None = None) -> None:
+        """End the server (SIGTERM unless ``sig`` says otherwise) and close its log."""
+        import signal
+        import subprocess
+
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM if sig is None else sig)
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        self.log.close()
+
+
 @contextlib.contextmanager
 def live_server(settings: Any) -> Iterator[str]:
     """The full app (lifespan included) served by uvicorn in a thread; yields its base URL."""

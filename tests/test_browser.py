@@ -19,8 +19,7 @@ from typing import Any
 
 import pytest
 
-from app.api.settings import Settings
-from tests.conftest import free_port, live_server
+from tests.conftest import ServedStation, free_port
 
 CHROMIUM = "/usr/bin/chromium"
 SHOTS = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
@@ -31,11 +30,14 @@ pytestmark = [pytest.mark.slow, pytest.mark.serial,
 
 @pytest.fixture(scope="module")
 def station(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]]:
-    port, vport = free_port(), free_port()
-    settings = Settings(data_dir=str(tmp_path_factory.mktemp("browser")), port=port, viser_port=vport,
-                        auto_connect=False)
-    with live_server(settings) as base:
-        yield base, f"http://127.0.0.1:{vport}"
+    # the README's `cwrr serve` in a process of its own, as a therapist's browser meets it: in a thread
+    # of this process the paced loop shared the interpreter lock with Playwright's driver
+    vport = free_port()
+    srv = ServedStation(tmp_path_factory.mktemp("browser"), viser_port=vport, CWRR_AUTO_CONNECT="false")
+    try:
+        yield srv.url, f"http://127.0.0.1:{vport}"
+    finally:
+        srv.stop()
 
 
 @pytest.fixture(autouse=True)
@@ -230,9 +232,10 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
     assert isinstance(browser, Browser)
     therapist = "therapist-browser-" + "0123456789"
     vport = free_port()
-    settings = Settings(data_dir=str(tmp_path), port=free_port(), viser_port=vport, auto_connect=False,
-                        therapist_token=therapist, admin_token="admin-browser-" + "0123456789")  # type: ignore[arg-type]
-    with live_server(settings) as base:
+    srv = ServedStation(tmp_path, viser_port=vport, CWRR_AUTO_CONNECT="false", CWRR_THERAPIST_TOKEN=therapist,
+                        CWRR_ADMIN_TOKEN="admin-browser-" + "0123456789")
+    base = srv.url
+    try:
         page = browser.new_page(viewport={"width": 1400, "height": 1000}, accept_downloads=True)
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))
@@ -275,6 +278,8 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
         text = Path(dl.value.path()).read_text()
         assert text.startswith("t,") and text.count("\n") > 100  # ≥ 0.5 s of the run at 200 Hz
         assert "token" not in page.url and not errors, errors
+    finally:
+        srv.stop()
 
 
 def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str, str], browser: object,
