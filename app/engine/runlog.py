@@ -136,20 +136,25 @@ class RunLogWriter:
 
     def flush(self) -> None:
         """Write the buffered rows durably."""
-        if self._write():
-            self._sync()
-
-    def _write(self) -> bool:
-        """Hand the buffered rows to the operating system; False once the file is closed."""
         with self._io_lock:
-            with self._buf_lock:
-                lines, self._buf = self._buf, []
-            if self._fh.closed:
-                return False
-            if lines:
-                self._fh.write("\n".join(lines) + "\n")
-                self._fh.flush()
-            return True
+            if self._write_locked():
+                self._sync()
+
+    def _write(self) -> None:
+        """Hand the buffered rows to the operating system (the writer thread's step)."""
+        with self._io_lock:
+            self._write_locked()
+
+    def _write_locked(self) -> bool:
+        """:meth:`_write` with ``_io_lock`` held; False once the file is closed."""
+        with self._buf_lock:
+            lines, self._buf = self._buf, []
+        if self._fh.closed:
+            return False
+        if lines:
+            self._fh.write("\n".join(lines) + "\n")
+            self._fh.flush()
+        return True
 
     def _sync(self) -> None:
         self._fh.flush()
