@@ -393,10 +393,24 @@ def test_a_full_sc2_run_through_modbus_scores_within_10_percent_of_the_direct_si
 def test_the_station_runs_sc2_over_modbus_in_real_time(tmp_path: Path) -> None:
     # paced on the wall clock, as on a rig: the run completes unfaulted and is scored; its figures
     # are not compared with a paced direct run's, which differ by 10-50 % from run to run (timing)
+    # The overrun fault (five late periods in a row) is the station's correct answer to a stall of the
+    # machine, and this 2-core VM stalls 30-40 ms now and then (one fresh-clone CI run, plant already in
+    # its own process: 32 ms). Such a run is retried, at most twice; any other ending fails at once.
     factory = HILFactory()
     hil = Station(factory, data_dir=tmp_path)
+    overran: list[str] = []
     try:
-        got = _run_sc2(hil)
+        while True:
+            try:
+                got = _run_sc2(hil)
+                break
+            except AssertionError:
+                fault = hil.safety.fault if hil.safety is not None else None
+                if fault is None or fault.code != "overrun" or len(overran) == 2:
+                    raise
+                overran.append(fault.message)
+                hil.clear()
+        print("attempts ended by the overrun fault:", overran)
         assert factory.plants[-1].stats()["requests"] > 2 * 200 * 8
     finally:
         hil.close()
