@@ -313,19 +313,10 @@ def _serve(args: argparse.Namespace) -> int:
 
 def _modbus_plant(args: argparse.Namespace) -> int:
     from app.engine.hardware.config import HardwareConfig, load_config
-    from app.engine.hardware.modbus import PlantServer
-    from app.engine.hardware.sim import SimulatedRig
-    from app.engine.human import HumanProgram
-    from app.engine.loop import WallClock
-    from app.engine.sim import Simulator
+    from app.engine.hardware.modbus import serve_simulated_plant
 
     cfg = load_config(args.hardware) if args.hardware else HardwareConfig(backend="modbus")
-    rig = SimulatedRig(WallClock(), period=1.0 / cfg.rate_hz)
-    rig.set_program(HumanProgram.rest())
-    # compile (or load) the plant before listening: a first request that waited for it would
-    # outlast the station's timeout and read as a lost link
-    Simulator(rig.params).advance_and_measure(0.01, rig.period)
-    server = PlantServer(rig, cfg, host=args.host, port=args.port).start()
+    server = serve_simulated_plant(cfg, host=args.host, port=args.port)
     print(f"cwrr modbus-plant: the simulated rotary rig on modbus://{server.host}:{server.port} "
           f"(register layout: app/engine/hardware/modbus.py); Ctrl-C stops", flush=True)
     try:

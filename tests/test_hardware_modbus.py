@@ -22,7 +22,7 @@ import pytest
 
 from app.engine.hardware.base import Command
 from app.engine.hardware.config import HardwareConfig, ModbusLink, load_config, save_config
-from app.engine.hardware.modbus import ModbusRig, PlantServer, counts_to_volts, volts_to_counts
+from app.engine.hardware.modbus import ModbusRig, PlantServer, counts_to_volts, serve_simulated_plant, volts_to_counts
 from app.engine.hardware.sim import SimulatedRig
 from app.engine.human import HumanProgram
 from app.engine.loop import WallClock
@@ -50,15 +50,12 @@ METRICS = ("mae", "iae", "itae", "evar", "rmse", "maxae")  # the thesis's six (a
 def _plant_main(conn: Any, period: float) -> None:
     """The plant process: a simulated rig served over Modbus, steered by the harness through ``conn``."""
     from app.engine.loop import make_server_realtime
-    from app.engine.sim import Simulator
 
     # a coupler answers in a bounded time whatever else the station's computer does; where the OS
     # allows it, this process's threads (the server's among them) rank above normal ones as well
     make_server_realtime()
-    rig = SimulatedRig(WallClock(), period=period)
-    rig.set_program(HumanProgram.rest())
-    Simulator(rig.params).advance_and_measure(0.01, period)  # load the kernels before the first request
-    server = PlantServer(rig, _config()).start()
+    server = serve_simulated_plant(_config(), period)
+    rig = server.rig
     conn.send(server.port)
     while True:
         op, *args = conn.recv()

@@ -344,3 +344,33 @@ class PlantServer:
         self._server = None
         self._loop = None
         self._ready.clear()
+
+
+def serve_simulated_plant(config: HardwareConfig, period: float | None = None, host: str = "127.0.0.1",
+                          port: int = 0) -> PlantServer:
+    """Serve the simulated rotary rig over Modbus on the wall clock, its person at rest.
+
+    The plant's kernels are loaded before the server listens: a first request
+    that waited for them to compile would outlast the station's timeout and
+    read as a lost link.
+
+    Args:
+        config: The register layout and scaling the station will use.
+        period: The plant's nominal sampling period [s] (default ``1 / config.rate_hz``).
+        host: Bind address.
+        port: TCP port (0: any free port).
+
+    Returns:
+        The started server; its simulated rig is ``server.rig``.
+    """
+    # imported here: the Modbus client side (ModbusRig) must not pull the simulator in
+    from app.engine.hardware.sim import SimulatedRig
+    from app.engine.human import HumanProgram
+    from app.engine.loop import WallClock
+    from app.engine.sim import Simulator
+
+    period = 1.0 / config.rate_hz if period is None else period
+    rig = SimulatedRig(WallClock(), period=period)
+    rig.set_program(HumanProgram.rest())
+    Simulator(rig.params).advance_and_measure(0.01, period)
+    return PlantServer(rig, config, host=host, port=port).start()
