@@ -72,6 +72,25 @@ def test_bad_input_gets_422_naming_the_field_and_changes_nothing(client: TestCli
     assert client.get("/api/runs").json() == []
 
 
+def test_an_unknown_query_parameter_is_refused_naming_it_and_changes_nothing(client: TestClient) -> None:
+    # a script's typo (``format`` for ``fmt``) must not read as the default answer
+    client.post("/api/engine/connect")
+    r = client.post("/api/engine/start?dry_run=1", json={"scenario": "SC-1"})
+    assert r.status_code == 422, r.text
+    err = r.json()["detail"][0]
+    assert err["loc"] == ["query", "dry_run"] and err["input"] == "1"
+    assert err["msg"] == "unknown query parameter 'dry_run'; this endpoint takes no query parameters"
+    assert client.get("/api/engine").json()["state"] == "idle"  # the run was not started
+    r = client.get("/api/runs?limit=5&sesion_id=3")  # misspelt, beside a known one
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["msg"] == ("unknown query parameter 'sesion_id'; this endpoint takes "
+                                            "kind, limit, offset, session_id")
+    assert client.get("/api/runs?limit=5&session_id=3").status_code == 200
+    # the query parameters of a route's dependencies count as its own; the dashboard's address takes any
+    assert client.get("/api/live?since=0&max_rows=2").status_code == 200
+    assert client.get("/?tab=runs").status_code == 200
+
+
 def test_parameter_sets_use_the_thesis_rules(client: TestClient) -> None:
     ok = {"rom_deg": 270, "vane_area_mm2": 855, "radius_mm": 23, "ns": 100, "nd": 100, "pw_bar": 3}
     r = client.post("/api/params", json={"kind": "rotary", "name": "CWRR vane", "values": ok})

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Path, Request
+from fastapi.exceptions import RequestValidationError
 
 from app.api.jobs import Jobs
 from app.engine.station import Station
@@ -34,3 +35,30 @@ StoreDep = Annotated[Store, Depends(get_store)]
 JobsDep = Annotated[Jobs, Depends(get_jobs)]
 IdPath = Annotated[int, Path(ge=1, le=2**62, description="stored id")]
 """A stored row's id (bounded so no database sees an integer it cannot hold)."""
+
+
+def _query_names(dependant: Any) -> frozenset[str]:
+    """The query parameters a route declares, its dependencies' included."""
+    names = {p.alias for p in dependant.query_params}
+    for sub in dependant.dependencies:
+        names |= _query_names(sub)
+    return frozenset(names)
+
+
+def known_query_only(request: Request) -> None:
+    """Refuse a query parameter the route does not take (422 naming it and the ones it does).
+
+    Left alone, ``?format=parquet`` on the export (which takes ``fmt``) would
+    answer CSV and say nothing; a script's typo must not read as the default.
+    """
+    route = request.scope.get("route")
+    dependant = getattr(route, "dependant", None)
+    if dependant is None or not request.url.path.startswith("/api/"):
+        return  # a page's address may carry what a browser or a bookmark put there
+    known = _query_names(dependant)
+    unknown = [k for k in dict.fromkeys(request.query_params) if k not in known]
+    if unknown:
+        takes = ", ".join(sorted(known)) if known else "no query parameters"
+        raise RequestValidationError([
+            {"type": "extra_forbidden", "loc": ["query", k], "input": request.query_params[k],
+             "msg": f"unknown query parameter {k!r}; this endpoint takes {takes}"} for k in unknown])

@@ -8,7 +8,7 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from fastapi import FastAPI, Request
+from fastapi import Depends, FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import FileResponse, JSONResponse, Response
@@ -16,6 +16,7 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.api.auth import READ, BodyLimit, Role, presented_role
+from app.api.deps import known_query_only
 from app.api.jobs import Jobs
 from app.api.models import AuthInfo, ViserInfo
 from app.api.routers import diagnoses, engine, params, runs, sessions
@@ -84,6 +85,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             store.close()
 
     app = FastAPI(title="CWRR Lab Station", version="0.2.0", lifespan=lifespan,
+                  dependencies=[Depends(known_query_only)],
                   description="Control station of the pneumatic wrist/forearm rehabilitation robot (CWRR).",
                   responses={400: {"description": "The body is not readable JSON"},
                              413: {"description": "The body is larger than CWRR_MAX_BODY_BYTES "
