@@ -25,6 +25,32 @@ REFDATA = next((p for p in (Path(__file__).resolve().parents[2] / "shared" / "re
 """refdata/ next to the repository in a work tree; at its fixed path in a fresh clone elsewhere."""
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--heavy-files-first", action="store_true",
+                     help="order the test files by how many tests marked slow each holds, most first "
+                          "(./dev test, with --dist loadfile --no-loadscope-reorder)")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """``--heavy-files-first``: the files with the most slow tests go out first.
+
+    ``./dev test`` hands whole files to its two workers (``--dist loadfile``),
+    one as each worker runs low, so a module-scoped fixture is built once (the
+    DCV grid's takes ≈ 110 s; handed out test by test, two workers each built
+    it). In collection order the last file out could be a long one and leave
+    the other worker idle (44 s apart in one run); heavy files first, the
+    short ones fill in at the end. xdist 3.8's per-test groups
+    (``--dist loadgroup``) do not group under pytest 9.2 (pytest-xdist#1386).
+    """
+    if not config.getoption("heavy_files_first"):
+        return
+    weight: dict[str, int] = {}
+    for item in items:
+        path = item.nodeid.split("::")[0]
+        weight[path] = weight.get(path, 0) + (item.get_closest_marker("slow") is not None)
+    items.sort(key=lambda it: -weight[it.nodeid.split("::")[0]])  # stable: a file's tests stay in order
+
+
 @pytest.fixture(scope="session")
 def params() -> PlantParams:
     """Default rotary rig (SPEC §1)."""

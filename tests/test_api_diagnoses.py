@@ -47,6 +47,7 @@ def test_the_protocol_table_is_served_from_the_engine(client: TestClient) -> Non
     assert t["candidates"] == list(EFFECT_NAMES)  # the page's check boxes, in the library's order
 
 
+@pytest.mark.slow
 def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestClient) -> None:
     r = client.post("/api/diagnoses", json={"protocol": {"effects": ["sensor_bias"], "magnitude": 2, "seed": 3,
                                                           "scale": 0.4}})

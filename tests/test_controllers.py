@@ -59,6 +59,7 @@ def test_eq_3_27_hand_computed(e: float, de: float, expected: tuple[float, float
     assert got == pytest.approx(expected, abs=1e-12)
 
 
+@pytest.mark.slow
 def test_centroid_matches_scikit_fuzzy() -> None:
     sk = pytest.importorskip("app.skfuzzy_peer")
     cfg = FuzzyConfig(defuzz="centroid")

@@ -103,6 +103,7 @@ def test_bad_protocol_arguments_are_refused_and_nothing_is_written(tmp_path: Pat
 
 
 
+@pytest.mark.slow
 def test_the_station_runs_the_protocol_and_a_diagnosis_takes_its_runs(client: TestClient) -> None:
     """POST /api/engine/protocol on the paced station; the experiments are stored as runs as they end,
     the protocol's run lists their ids, and a diagnosis accepts them."""

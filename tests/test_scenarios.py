@@ -128,6 +128,7 @@ def test_robot_stops_within_100_ms_when_the_user_lets_go(controller: str) -> Non
 
 
 # ------------------------------------------------------------------ the benchmark command
+@pytest.mark.slow
 def test_bench_thesis_writes_the_contract(tmp_path: Path) -> None:
     buf = io.StringIO()
     with redirect_stdout(buf):

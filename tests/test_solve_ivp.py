@@ -7,6 +7,7 @@ any difference is integration error of the fixed-step scheme.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.integrate import solve_ivp
 
 from app.engine.constants import BAR
@@ -29,6 +30,7 @@ def _fixed_step(p: PlantParams, x0: np.ndarray, cmd: np.ndarray, t_grid: np.ndar
     return np.array(xs)
 
 
+@pytest.mark.slow
 def test_chamber_filling_matches_solve_ivp() -> None:
     # Vane held (large inertia), PRV-a commanded above supply so its spool
     # saturates open: the chamber fills through PRV and DCV from the supply.
