@@ -238,3 +238,22 @@ def test_the_intention_dwell_counts_the_time_its_samples_span_not_the_ticks() ->
     assert longer[-2:] == [1, 2]  # it persists: CW once the samples span 10 ms (5 + 1 + 2.3 + 5)
     grid = modes([*ccw, 0.015, 0.020], [1.4, 1.4, 1.4, -0.45, -0.45])
     assert grid[-2:] == [1, 2]  # on the regular grid: two samples, as before
+
+
+def test_a_prv_controller_compiles_its_kernel_when_built_not_when_first_stepped() -> None:
+    # The autotuner builds its controller in the request's thread and steps it in the paced loop; on
+    # a fresh install the first step compiled the kernel's entry point inside a period and stalled the
+    # loop past its 1 s watchdog (a fresh-clone CI run). A process of its own, so that no earlier test
+    # has already loaded the signature.
+    import subprocess
+    import sys
+
+    code = ("from app.engine.control import pipeline as cpl\n"
+            "from app.engine.control.blocks import PRVController\n"
+            "c = PRVController('b', 'pid')\n"
+            "built = len(cpl.prv_controller.signatures)\n"
+            "c.step(3.0, 2.9, 0.005)\n"
+            "print(built, len(cpl.prv_controller.signatures))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    built, stepped = map(int, out.stdout.split())
+    assert built >= 1 and stepped == built, (built, stepped)

@@ -13,7 +13,8 @@ Parts (each compiles what its workloads call; given several, each runs in a
 process of its own, so that they compile on several cores at once):
 
 - ``sim``: the station's simulated rig (a period's advance and sensors), the
-  controller pipeline with the fuzzy gains, and the compiled workout loop;
+  controller pipeline with the fuzzy gains, the autotuner's PRV controller
+  and the compiled workout loop;
 - ``replay``: the diagnosis replay (pneumatic network along a measured
   motion, the friction law) and the linear friction fit's onset model.
 """
@@ -27,6 +28,7 @@ from collections.abc import Callable, Sequence
 
 
 def _sim() -> None:
+    from app.engine.control.blocks import PRVController
     from app.engine.control.interaction import InteractionController
     from app.engine.hardware.sim import SimulatedRig
     from app.engine.loop import SimClock
@@ -38,6 +40,7 @@ def _sim() -> None:
     rig.activate()
     clock.sleep_until(0.005)
     InteractionController().step(rig.read(), 0.005)
+    PRVController("a", "pid")  # the pressure-loop autotuner's controller (compiles its entry point)
 
 
 def _replay() -> None:

@@ -127,6 +127,9 @@ class PRVController:
         self.cp, _, self.fz = self.config.pack()
         self.state = np.zeros(cpl.NSTATE)
         self.h = controller_h(controller)
+        # compile (or load) the kernel's entry point here, on a scratch state: the first step runs in
+        # the paced loop, and compiling there on a fresh install stalled it past its 1 s watchdog
+        cpl.prv_controller(self.side, self.h, 0.0, 0.0, 0.0, np.zeros(cpl.NSTATE), self.cp, self.fz, 0.005)
 
     def switch(self, controller: ControllerName) -> None:
         """Change controller; the command continues without a bump."""
