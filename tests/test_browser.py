@@ -393,6 +393,21 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     assert proto["person"] == "P-021", proto
     with urllib.request.urlopen(base + "/api/runs?kind=protocol&limit=2", timeout=10) as r:
         assert [x["person"] for x in json.loads(r.read())] == ["P-021", "P-021"]
+    # a verdict weighed against a baseline of another form (docs/diagnosis.md, "A sensor offset or
+    # friction per direction") is said under it: that report, as the engine writes it, shown by the page
+    with urllib.request.urlopen(base + "/api/runs?kind=diagnosis&limit=1", timeout=10) as r:
+        rep = json.loads(urllib.request.urlopen(f"{base}/api/runs/{json.loads(r.read())[0]['id']}",
+                                                timeout=10).read())["result"]
+    assert rep["alternatives"] == [] or rep["verdict"]["effects"] == ["sensor_bias"], rep["verdict"]
+    rep["verdict"] |= {"effects": ["sensor_bias"], "alternatives": ["friction_per_direction"]}
+    rep["alternatives"] = [{"explanation": "friction_per_direction", "instead_of": "sensor_bias",
+                            "description": "friction off per direction", "separate_by": "tare the sensors",
+                            "gap_closure": 0.65, "effect_gap_closure": 0.66, "gc_difference_ci90": [-0.06, 0.11],
+                            "confusable": True, "better": False, "dropped": False}]
+    page.evaluate("rep => show(rep)", rep)
+    expect(page.locator("#detail")).to_contain_text(
+        "Or friction_per_direction (friction off per direction) instead of sensor_bias: these logs cannot tell them "
+        "apart (gap closure 0.650 against 0.660 for sensor_bias). To tell: tare the sensors.")
     assert not errors, errors
 
 

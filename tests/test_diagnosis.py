@@ -368,6 +368,71 @@ def test_a_rebased_candidate_descends_once_from_its_cheapest_start(offset: float
         assert r["verdict"]["effects"] == []
 
 
+class _SlopeOrOffset(_Line):
+    """y = a·x plus an offset candidate, whose alternative is a slope that differs per sign of x.
+
+    The rotary family's sensor offsets and friction per direction in miniature: in motion both
+    add to one direction's torque what they take from the other's.
+    """
+
+    candidates = ("offset",)
+
+    def effect(self, name: str) -> list[Param]:
+        return {"offset": [Param("offset.c", 0.0, -2.0, 2.0, "-")],
+                "per_sign": [Param("per_sign.k", 0.0, -0.9, 0.9, "-")]}[name]
+
+    def alternatives(self, effect: str) -> dict[str, dict[str, str]]:
+        return {"per_sign": {"description": "a slope per sign of x", "separate_by": "visit x near 0"}}
+
+    def predict(self, p: Experiment, x: dict[str, float], effects: tuple[str, ...]) -> dict[str, np.ndarray]:
+        xs = p.inputs["x"]
+        k = x["per_sign.k"] if "per_sign" in effects else 0.0
+        return {"y": x["a"] * xs * (1.0 + k * np.sign(xs)) + (x["offset.c"] if "offset" in effects else 0.0)}
+
+
+@pytest.mark.parametrize(("truth", "levels", "outcome"), [
+    ("offset", 0, "offset alone"),  # x sweeps [−1, 1]: near 0 an offset shows and a per-sign slope does not
+    ("per_sign", 0, "dropped"),  # the per-sign slope explains more, and the offset adds nothing beside it
+    ("offset", 2, "confusable"),  # x only ever ±1: the two make the same predictions
+])
+def test_an_effect_is_weighed_against_a_baseline_of_another_form_that_could_close_the_same_gap(
+        truth: str, levels: int, outcome: str) -> None:
+    rng = np.random.default_rng(4)
+    exps = []
+    for k in range(2):
+        x = rng.uniform(-1.0, 1.0, 2000) if not levels else np.where(rng.uniform(size=2000) < 0.5, -1.0, 1.0)
+        y = 2.0 * x + (0.3 if truth == "offset" else 0.3 * x * np.sign(x))
+        exps.append(Experiment(f"e{k}", np.arange(x.size) * 0.01, {"x": x},
+                               {"y": y + rng.normal(0.0, 0.01, x.size)}, {}))
+    r = diagnose(_SlopeOrOffset(), exps[:1], exps[1:])
+    (alt,) = r["alternatives"]
+    assert alt["explanation"] == "per_sign" and alt["instead_of"] == "offset"
+    v = r["verdict"]
+    if outcome == "offset alone":
+        assert v["effects"] == ["offset"] and v["alternatives"] == [] and v["summary"] == "offset"
+        assert alt["gc_difference_ci90"][0] > 0.0 and not (alt["confusable"] or alt["better"] or alt["dropped"])
+    elif outcome == "dropped":
+        assert alt["better"] and alt["dropped"] and not alt["effect_beside_it"]["significant"]
+        assert alt["params"]["per_sign.k"] == pytest.approx(0.15, abs=0.01)  # 2·(1 + k)·|x| = 2|x| + 0.3|x|
+        assert v["effects"] == [] and v["alternatives"] == ["per_sign"]
+        assert v["summary"].startswith("no significant effect; offset closed the gap, but per_sign")
+        assert r["how_far"]["e_after"] == r["how_far"]["e_before"]  # no effect left to credit
+        assert r["ranking"][0]["effect"] == "offset" and r["ranking"][0]["significant"]  # the ranking stays as fitted
+    else:
+        assert v["effects"] == ["offset"] and v["alternatives"] == ["per_sign"]
+        assert alt["confusable"] and not alt["dropped"]
+        assert "these logs cannot tell them apart; to tell: visit x near 0" in v["summary"]
+
+
+def test_a_diagnosis_without_an_effect_weighs_no_alternative() -> None:
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-1.0, 1.0, 2000)
+    exps = [Experiment(f"e{k}", np.arange(x.size) * 0.01, {"x": x}, {"y": 2.0 * x + rng.normal(0.0, 0.01, x.size)},
+                       {}) for k in range(2)]
+    r = diagnose(_SlopeOrOffset(), exps[:1], exps[1:])
+    assert r["verdict"]["effects"] == [] and r["alternatives"] == [] and r["verdict"]["alternatives"] == []
+
+
 class _Decay(_Line):
     """y = exp(−t/τ): one smooth valley, for what a grid start's refinements do."""
 

@@ -387,6 +387,7 @@ def test_withheld_sensor_bias_through_the_cli(tmp_path: Path, capsys: pytest.Cap
     assert r["verdict"]["effects"][:1] == ["sensor_bias"], r["verdict"]
     top = r["ranking"][0]
     assert top["effect"] == "sensor_bias" and top["significant"]
+    assert r["verdict"]["alternatives"] == [], r["alternatives"]  # real offsets: not a friction error per direction
     # the offsets the rig had (MAGNITUDES["sensor_bias"][1]: +0.15 bar, +0.10 bar, −0.3 N·m), recovered.
     # A pressure sensor's offset trades against its gain (fitted too, the rig's are off by up to ±2 %)
     # when the logs stay near P_w, so what the data pin down is the sensor's reading over the pressures
@@ -541,6 +542,28 @@ def test_sensor_offsets_give_back_the_flows_the_baseline_bent_to_absorb_them() -
         return float(res @ res)
 
     assert cost(fitted) < 1.5 * cost(truth), fitted
+
+
+@pytest.mark.slow
+def test_friction_off_per_direction_is_not_passed_off_as_a_sensor_offset() -> None:
+    """An effect-free rig whose CCW static/Coulomb friction is 15 % above and CW 15 % below the
+    rest of its error. With one friction scale for both directions the torque balance's misfit
+    bent the pressure gains, and sensor_bias won it back (two such rigs: GC 0.69 and 0.66, a
+    torque offset of 0.16 N·m, verdict sensor_bias). The offsets are now weighed against friction
+    per direction: the verdict either drops them or names the alternative beside them."""
+    r = run_case(None, seed=13, structural="friction_per_direction", scale=0.5)
+    rep = r["report"]
+    v = rep["verdict"]
+    bias = next(c for c in rep["ranking"] if c["effect"] == "sensor_bias")
+    assert bias["significant"], bias  # on its own, the offsets would have been the verdict
+    (alt,) = rep["alternatives"]
+    assert alt["explanation"] == "friction_per_direction" and alt["instead_of"] == "sensor_bias"
+    assert alt["params"]["friction_per_direction.asymmetry"] == pytest.approx(0.15, abs=0.05), alt
+    assert (alt["confusable"] or alt["better"]) and alt["effect_gap_closure"] == bias["gap_closure"], alt
+    assert v["alternatives"] == ["friction_per_direction"] and "tare the sensors" in v["summary"]
+    # dropped when the friction explains more and the offsets add nothing beside it; kept, and
+    # said to be confusable, when the logs cannot tell
+    assert v["effects"] == ([] if alt["dropped"] else ["sensor_bias"]), v
 
 
 def test_every_parameter_off_by_its_own_error_stays_within_the_spread_and_physical() -> None:

@@ -640,6 +640,70 @@ def _grid_start(family: Family, preps: list[Any], effects: tuple[str, ...], ref:
     return best
 
 
+def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, base_sc: Scores,
+                  selected: list[Candidate], singles: list[Candidate], norm: _Norm, blocks: int,
+                  scales: dict[str, float], stop: threading.Event | None) -> list[dict[str, Any]]:
+    """Each selected effect against the family's explanations of the same gap that need no effect.
+
+    A family may name, per effect, a baseline of another form that could
+    close the same gap (``alternatives(effect)``: a rotary rig's sensor
+    offsets against friction levels that differ per direction). Each is
+    fitted and scored like a candidate, from the same baseline; it is
+    *confusable* with the effect when it is plausible (as for two effects)
+    and a paired bootstrap of GC(effect) − GC(alternative) contains 0, and
+    *better* when that interval lies below 0. A better alternative is then
+    taken as the reference and the effect fitted on top of it: if the
+    effect is no longer significant there, it is ``dropped`` from the
+    verdict (the gap is the baseline's form, not an unmodelled effect).
+    Otherwise the verdict keeps the effect and names the alternative beside
+    it, with the step that tells the two apart.
+    """
+    alt_of = getattr(family, "alternatives", None)
+    if alt_of is None:
+        return []
+    out: list[dict[str, Any]] = []
+    for s in selected:
+        win = next(c for c in singles if c.effect == s.effect)
+        for name, info in alt_of(s.effect).items():
+            c = _evaluate(family, calib, held, base, base_sc, (name,), norm, blocks, scales, stop)
+            lo, hi = bootstrap_gc_difference(base_sc, win.scores, c.scores, norm)
+            plausible = c.significant or (c.relevant and c.ci[1] >= win.ci[0])
+            better = bool(plausible and hi < 0.0)
+            row = c.as_dict() | {"explanation": name, "instead_of": s.effect, **info,
+                                 "effect_gap_closure": win.gap_closure, "gc_difference_ci90": [lo, hi],
+                                 "confusable": bool(plausible and lo <= 0.0 <= hi), "better": better,
+                                 "dropped": False}
+            if better:
+                beside = _evaluate(family, calib, held, c.fit, c.scores, (name, s.effect), norm, blocks, scales,
+                                   stop)
+                row |= {"effect_beside_it": {"gap_closure": beside.gap_closure, "gap_closure_ci90": list(beside.ci),
+                                             "delta_bic": beside.delta_bic, "significant": beside.significant},
+                        "dropped": not beside.significant}
+            out.append(row)
+    return out
+
+
+def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]]) -> str:
+    """The verdict in one line."""
+    if selected:
+        out = " + ".join(c.effect for c in selected)
+    elif any(a["dropped"] for a in alternatives):
+        out = "no significant effect"
+    else:
+        return "no significant effect: the baseline is within the noise or no candidate explains what remains"
+    for a in alternatives:
+        if a["dropped"]:
+            out += (f"; {a['instead_of']} closed the gap, but {a['explanation']} ({a['description']}) closes more "
+                    f"and {a['instead_of']} adds nothing significant beside it; to tell: {a['separate_by']}")
+        elif a["better"]:
+            out += (f"; {a['explanation']} ({a['description']}) closes more than {a['instead_of']}, which still "
+                    f"adds significantly beside it; to tell: {a['separate_by']}")
+        elif a["confusable"]:
+            out += (f"; or {a['explanation']} instead of {a['instead_of']} ({a['description']}): these logs cannot "
+                    f"tell them apart; to tell: {a['separate_by']}")
+    return out
+
+
 def _rank_key(c: Candidate) -> tuple[bool, bool, float]:
     """Significant first; then an effect whose own parameters sit inside their physical
     bounds before one pinned on a bound (pinned, it is mimicking a shape it cannot make);
@@ -745,6 +809,13 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                     only = [x for x in protocol.get(win.effect, []) if x not in protocol.get(c.effect, [])]
                     separate.append({"effects": [win.effect, c.effect], "experiments": only or
                                      protocol.get(win.effect, [])})
+    alternatives = _alternatives(family, calib, held, base, base_sc, selected, singles, norm, blocks, scales, stop)
+    dropped = {a["instead_of"] for a in alternatives if a["dropped"]}
+    if dropped:
+        # what is left is scored as the last effect kept (a later round's fit includes the dropped
+        # effect; families name alternatives for effects that come alone, as sensor offsets do)
+        selected = [c for c in selected if c.effect not in dropped]
+        ref_sc = selected[-1].scores if selected else base_sc
     e_final, nr_final = _e(ref_sc, norm)
     chans = list(family.channels)
     return {
@@ -762,11 +833,11 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         "where": where(family, held, base),
         "ranking": [c.as_dict() for c in singles],
         "combination": [c.as_dict() for c in selected],
+        "alternatives": alternatives,
         "verdict": {"effects": [c.effect for c in selected], "confusable_with": confusable,
                     "separating_experiments": separate,
-                    "summary": ("no significant effect: the baseline is within the noise or no candidate "
-                                "explains what remains") if not selected else
-                               f"{' + '.join(c.effect for c in selected)}"},
+                    "alternatives": [a["explanation"] for a in alternatives if a["confusable"] or a["better"]],
+                    "summary": _summary(selected, alternatives)},
         "how_far": {"before": dict(zip(chans, map(float, nr_base), strict=True)),
                     "after": dict(zip(chans, map(float, nr_final), strict=True)),
                     "e_before": e_base, "e_after": e_final, "e_floor": e_floor,

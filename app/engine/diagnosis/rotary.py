@@ -361,6 +361,9 @@ class RotaryFamily:
                              Param("supply_droop.tau", 0.05, 1e-3, 5.0, "s", log=True)],
             "valve_dynamics": [Param("valve_dynamics.tau_dcv", 0.005, 1e-4, 0.2, "s", log=True, off=1e-4),
                                Param("valve_dynamics.tau_prv", 0.02, 1e-4, 1.0, "s", log=True, off=1e-4)],
+            # not an effect: the alternative to sensor_bias (see :meth:`alternatives`). The CCW
+            # static/Coulomb levels × (1 + a), the CW ones × (1 − a)
+            "friction_per_direction": [Param("friction_per_direction.asymmetry", 0.0, -0.5, 0.5, "-", off=0.0)],
         }
         if name not in table:
             raise ValueError(f"rotary family: no effect {name!r}")
@@ -579,6 +582,32 @@ class RotaryFamily:
             return set(_PNEUMATIC_BASE)
         return set()
 
+    def alternatives(self, effect: str) -> dict[str, dict[str, Any]]:
+        """Explanations of what ``effect`` closes that need no unmodelled effect, only a baseline of another form.
+
+        A sensor offset and a friction error per direction look alike. In
+        motion, an offset on the torque sensor adds to the balance in both
+        directions, and so does CCW friction higher than CW; at standstill
+        static friction takes up either. The baseline scales both directions'
+        friction by one factor (the thesis identifies them apart, Table 4.2),
+        so on a rig whose two directions are off by errors of their own the
+        torque balance's misfit bent the pressure sensors' gains and
+        sensor_bias won it all back: effect-free rigs with the CCW levels
+        15 % above and the CW ones 15 % below the rest's error got a verdict
+        of sensor_bias, GC 0.66–0.69, a torque offset of 0.16 N·m and no
+        pressure offset (see docs/diagnosis.md, "A sensor offset or friction
+        per direction"). Each alternative names the parameters it adds (as
+        :meth:`effect` does) and the step that tells the two apart.
+        """
+        if effect != "sensor_bias":
+            return {}
+        return {"friction_per_direction": {
+            "description": "the friction's static and Coulomb levels off by an error of their own in each "
+                           "direction, where the baseline scales both by one factor; no sensor offset",
+            "separate_by": "tare the sensors: handle released and both chambers vented, the torque sensor "
+                           "must read 0 N·m and the pressure sensors the atmosphere; an offset reads there, "
+                           "a friction error does not"}}
+
     def rebase(self, effects: tuple[str, ...]) -> set[str]:
         """Baseline parameters a single effect's fit also restarts from their nominal values.
 
@@ -595,9 +624,12 @@ class RotaryFamily:
         offsets into the flows (PRV and DCV capacity 1.25 / 0.80 × nominal for
         a true 1.11 / 1.04 ×), and the offsets' fit from there ended at 3.0 ×
         the truth's calibration cost (from the nominal flows: 0.76 ×).
+
+        The alternative to sensor offsets (:meth:`alternatives`) restarts them
+        likewise, so that the two are compared on equal terms.
         """
-        return set(_PNEUMATIC_BASE) if len(effects) == 1 and effects[0] in (*_PNEUMATIC_EFFECTS, "sensor_bias") \
-            else set()
+        return set(_PNEUMATIC_BASE) if len(effects) == 1 and effects[0] in (*_PNEUMATIC_EFFECTS, "sensor_bias",
+                                                                            "friction_per_direction") else set()
 
     def linear_start(self, preps: list[RotaryPrep], x: dict[str, float],
                      effects: tuple[str, ...]) -> dict[str, float] | None:
@@ -653,9 +685,10 @@ class RotaryFamily:
         (a pneumatic candidate's descent varies flow parameters it cannot see)."""
         j = self.nominal.vane.inertia + (x["inertia.extra"] if "inertia" in effects else 0.0)
         fs, vs = x.get("friction_scale", 1.0), x.get("viscous_scale", 1.0)
+        asym = x["friction_per_direction.asymmetry"] if "friction_per_direction" in effects else 0.0
         lug = "presliding_friction" in effects
         s0, s1 = x.get("presliding_friction.sigma0", 1.0), x.get("presliding_friction.sigma1", 0.0)
-        key = (lug, *(round(v, 12) for v in (ga, gb, ba, bb, bt, j, fs, vs, s0, s1)))
+        key = (lug, *(round(v, 12) for v in (ga, gb, ba, bb, bt, j, fs, asym, vs, s0, s1)))
         hit = _lru_get(prep.torque_cache, key)
         if hit is not None:
             return hit
@@ -668,7 +701,8 @@ class RotaryFamily:
         pa, pb = sensed(prep.pa_f, prep.pb_f)
         tp = self.kernel.area_a * (pa - pb) * BAR
         fr = pl.pack_friction(self.nominal.friction).copy()
-        fr[[1, 2, 5, 6]] *= fs
+        fr[[1, 2]] *= fs * (1.0 + asym)  # static and Coulomb levels, CCW
+        fr[[5, 6]] *= fs * (1.0 - asym)  # and CW
         fr[[4, 8]] *= vs
         # what static friction holds is computed sample by sample from the raw signals (the vane
         # does not accelerate while stuck) and filtered once with the rest: filtering the

@@ -52,6 +52,18 @@ MAGNITUDES: dict[str, tuple[Any, Any]] = {
 """Two magnitudes per effect (smaller, larger)."""
 
 
+def friction_per_direction(p: PlantParams, asymmetry: float) -> PlantParams:
+    """``p`` with its CCW static and Coulomb levels × (1 + ``asymmetry``) and its CW ones × (1 − ``asymmetry``)."""
+    fr = p.friction
+
+    def times(v: tuple[float, ...], f: float) -> tuple[float, ...]:
+        return tuple(x * f for x in v)
+
+    up, down = 1.0 + asymmetry, 1.0 - asymmetry
+    return replace(p, friction=replace(fr, ts_ccw=times(fr.ts_ccw, up), tc_ccw=times(fr.tc_ccw, up),
+                                       ts_cw=times(fr.ts_cw, down), tc_cw=times(fr.tc_cw, down)))
+
+
 STRUCTURAL: dict[str, tuple[str, Callable[[PlantParams], PlantParams]]] = {
     "dcv_b_0.40": ("the DCV's critical pressure ratio 0.40 (the model's: 0.26, Table 3.3)",
                    lambda p: replace(p, dcv=replace(p.dcv, b=0.40))),
@@ -65,6 +77,9 @@ STRUCTURAL: dict[str, tuple[str, Callable[[PlantParams], PlantParams]]] = {
                          lambda p: replace(p, dcv=replace(p.dcv, null_leak_fraction=2 * p.dcv.null_leak_fraction))),
     "prv_tau_spool_x3": ("a PRV spool three times slower (12 ms)",
                          lambda p: replace(p, prv=replace(p.prv, tau_spool=3 * p.prv.tau_spool))),
+    "friction_per_direction": ("static and Coulomb friction 15 % higher CCW and 15 % lower CW than the rest of "
+                               "the friction's error (the model scales both directions by one factor)",
+                               lambda p: friction_per_direction(p, 0.15)),
 }
 """Rigs that differ from the diagnosed model in form, not in a recalibratable scale nor by a candidate
 effect: what a rig model written by someone else looks like to the tool. The baseline cannot fit
@@ -73,7 +88,7 @@ these exactly; the tool must leave the rest as unexplained gap, not blame a cand
 STRUCTURAL_PAIRS: dict[str, tuple[str, int]] = {
     "stribeck_j_1": ("inertia", 1), "dcv_null_leak_x2": ("vane_leakage", 0), "prv_b_0.45": ("supply_droop", 1),
     "prv_deadband_half": ("valve_dynamics", 1), "dcv_b_0.40": ("heat_transfer", 1),
-    "prv_tau_spool_x3": ("sensor_bias", 0),
+    "prv_tau_spool_x3": ("sensor_bias", 0), "friction_per_direction": ("sensor_bias", 0),
 }
 """A withheld effect (and magnitude) on each form-mismatched rig: is it still found beside the mismatch?"""
 
@@ -257,6 +272,7 @@ def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float
     oracle = oracle_gap_closure(rep, held, true_params(rig, effect), (effect,) if effect else ())
     return {"effect": effect, "magnitude": magnitude, "seed": seed, "structural": structural, "errors": errors,
             "rank": rank, "first": first, "verdict": found, "confusable_with": rep["verdict"]["confusable_with"],
+            "alternatives": rep["verdict"]["alternatives"],
             "gap_closure": gc, "oracle_gap_closure": oracle, "seconds": secs, "report": rep}
 
 
@@ -281,6 +297,7 @@ def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
         "false_positive_rate": (sum(1 for r in null if r["verdict"]) / len(null)) if null else None,
         "median_oracle_gc": float(np.median([r["oracle_gap_closure"] for r in eff])) if eff else None,
         "rows": [{k: r.get(k) for k in ("effect", "magnitude", "seed", "structural", "errors", "rank", "verdict",
-                                        "confusable_with", "gap_closure", "oracle_gap_closure", "seconds")}
+                                        "confusable_with", "alternatives", "gap_closure", "oracle_gap_closure",
+                                        "seconds")}
                  for r in results],
     }
