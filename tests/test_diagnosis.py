@@ -394,6 +394,7 @@ class _SlopeOrOffset(_Line):
     ("offset", 0, "offset alone"),  # x sweeps [−1, 1]: near 0 an offset shows and a per-sign slope does not
     ("per_sign", 0, "dropped"),  # the per-sign slope explains more, and the offset adds nothing beside it
     ("offset", 2, "confusable"),  # x only ever ±1: the two make the same predictions
+    ("both", 0, "also"),  # an offset and a per-sign slope: the offset wins, and the slope is there beside it
 ])
 def test_an_effect_is_weighed_against_a_baseline_of_another_form_that_could_close_the_same_gap(
         truth: str, levels: int, outcome: str) -> None:
@@ -401,7 +402,7 @@ def test_an_effect_is_weighed_against_a_baseline_of_another_form_that_could_clos
     exps = []
     for k in range(2):
         x = rng.uniform(-1.0, 1.0, 2000) if not levels else np.where(rng.uniform(size=2000) < 0.5, -1.0, 1.0)
-        y = 2.0 * x + (0.3 if truth == "offset" else 0.3 * x * np.sign(x))
+        y = 2.0 * x + (0.3 if truth in ("offset", "both") else 0.0) + (0.3 * np.abs(x) if truth != "offset" else 0.0)
         exps.append(Experiment(f"e{k}", np.arange(x.size) * 0.01, {"x": x},
                                {"y": y + rng.normal(0.0, 0.01, x.size)}, {}))
     r = diagnose(_SlopeOrOffset(), exps[:1], exps[1:])
@@ -410,7 +411,8 @@ def test_an_effect_is_weighed_against_a_baseline_of_another_form_that_could_clos
     v = r["verdict"]
     if outcome == "offset alone":
         assert v["effects"] == ["offset"] and v["alternatives"] == [] and v["summary"] == "offset"
-        assert alt["gc_difference_ci90"][0] > 0.0 and not (alt["confusable"] or alt["better"] or alt["dropped"])
+        assert alt["gc_difference_ci90"][0] > 0.0
+        assert not (alt["confusable"] or alt["better"] or alt["dropped"] or alt["also"])
     elif outcome == "dropped":
         assert alt["better"] and alt["dropped"] and not alt["effect_beside_it"]["significant"]
         assert alt["params"]["per_sign.k"] == pytest.approx(0.15, abs=0.01)  # 2·(1 + k)·|x| = 2|x| + 0.3|x|
@@ -418,6 +420,13 @@ def test_an_effect_is_weighed_against_a_baseline_of_another_form_that_could_clos
         assert v["summary"].startswith("no significant effect; offset closed the gap, but per_sign")
         assert r["how_far"]["e_after"] == r["how_far"]["e_before"]  # no effect left to credit
         assert r["ranking"][0]["effect"] == "offset" and r["ranking"][0]["significant"]  # the ranking stays as fitted
+    elif outcome == "also":
+        assert v["effects"] == ["offset"] and v["alternatives"] == ["per_sign"]
+        assert alt["also"] and not (alt["confusable"] or alt["better"] or alt["dropped"])
+        together = alt["beside_effect"]["params"]
+        assert together["offset.c"] == pytest.approx(0.3, abs=0.01) and together["per_sign.k"] == pytest.approx(
+            0.15, abs=0.01)
+        assert "with per_sign beside offset" in v["summary"] and "offset.c = 0.3" in v["summary"]
     else:
         assert v["effects"] == ["offset"] and v["alternatives"] == ["per_sign"]
         assert alt["confusable"] and not alt["dropped"]

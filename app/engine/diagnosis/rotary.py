@@ -603,7 +603,7 @@ class RotaryFamily:
             return {}
         return {"friction_per_direction": {
             "description": "the friction's static and Coulomb levels off by an error of their own in each "
-                           "direction, where the baseline scales both by one factor; no sensor offset",
+                           "direction, where the baseline scales both by one factor",
             "separate_by": "tare the sensors: handle released and both chambers vented, the torque sensor "
                            "must read 0 N·m and the pressure sensors the atmosphere; an offset reads there, "
                            "a friction error does not"}}
