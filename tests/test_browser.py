@@ -404,7 +404,9 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
                             "description": "friction off per direction", "separate_by": "tare the sensors",
                             "gap_closure": 0.65, "effect_gap_closure": 0.66, "gc_difference_ci90": [-0.06, 0.11],
                             "confusable": True, "better": False, "dropped": False}]
+    rep["ranking"][0]["dropped_for"] = ["friction_per_direction"]  # as where the alternative explains more
     page.evaluate("rep => show(rep)", rep)
+    expect(page.locator("#ranking")).to_contain_text("(not the verdict: friction_per_direction explains more)")
     expect(page.locator("#detail")).to_contain_text(
         "Or friction_per_direction (friction off per direction) instead of sensor_bias: these logs cannot tell them "
         "apart (gap closure 0.650 against 0.660 for sensor_bias). To tell: tare the sensors.")

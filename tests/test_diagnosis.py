@@ -419,7 +419,8 @@ def test_an_effect_is_weighed_against_a_baseline_of_another_form_that_could_clos
         assert v["effects"] == [] and v["alternatives"] == ["per_sign"]
         assert v["summary"].startswith("no significant effect; offset closed the gap, but per_sign")
         assert r["how_far"]["e_after"] == r["how_far"]["e_before"]  # no effect left to credit
-        assert r["ranking"][0]["effect"] == "offset" and r["ranking"][0]["significant"]  # the ranking stays as fitted
+        top = r["ranking"][0]  # the ranking stays as fitted, and says what took the offset's place
+        assert top["effect"] == "offset" and top["significant"] and top["dropped_for"] == ["per_sign"]
     elif outcome == "also":
         assert v["effects"] == ["offset"] and v["alternatives"] == ["per_sign"]
         assert alt["also"] and not (alt["confusable"] or alt["better"] or alt["dropped"])

@@ -855,7 +855,11 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                      "identifiability": base.identifiability()},
         "noise_floor": {"nrmse": dict(zip(chans, map(float, floor / spread), strict=True)), "e": e_floor},
         "where": where(family, held, base),
-        "ranking": [c.as_dict() for c in singles],
+        # an effect taken out of the verdict for an alternative keeps its single fit's significance
+        # against the baseline here, and says what took its place
+        "ranking": [c.as_dict() | ({"dropped_for": [a["explanation"] for a in alternatives
+                                                     if a["dropped"] and a["instead_of"] == c.effect]}
+                                   if c.effect in dropped else {}) for c in singles],
         "combination": [c.as_dict() for c in selected],
         "alternatives": alternatives,
         "verdict": {"effects": [c.effect for c in selected], "confusable_with": confusable,
