@@ -371,8 +371,8 @@ def test_a_rebased_candidate_descends_once_from_its_cheapest_start(offset: float
 class _SlopeOrOffset(_Line):
     """y = a·x plus an offset candidate, whose alternative is a slope that differs per sign of x.
 
-    The rotary family's sensor offsets and friction per direction in miniature: in motion both
-    add to one direction's torque what they take from the other's.
+    The rotary family's sensor offsets and friction per direction in miniature: whichever the
+    sign of x, both add to y (an offset c, the per-sign slope a·k·|x|); only near x = 0 do they differ.
     """
 
     candidates = ("offset",)
