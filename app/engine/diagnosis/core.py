@@ -640,6 +640,13 @@ def _grid_start(family: Family, preps: list[Any], effects: tuple[str, ...], ref:
     return best
 
 
+def _weigh(base_sc: Scores, win: Candidate, c: Candidate, norm: _Norm) -> tuple[float, float, bool]:
+    """The 90 % CI of GC(win) − GC(c), paired, and whether ``c`` is a plausible rival at all
+    (significant, or relevant with a CI reaching ``win``'s)."""
+    lo, hi = bootstrap_gc_difference(base_sc, win.scores, c.scores, norm)
+    return lo, hi, c.significant or (c.relevant and c.ci[1] >= win.ci[0])
+
+
 def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, base_sc: Scores,
                   selected: list[Candidate], singles: list[Candidate], norm: _Norm, blocks: int,
                   scales: dict[str, float], stop: threading.Event | None) -> list[dict[str, Any]]:
@@ -669,13 +676,12 @@ def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, 
         win = next(c for c in singles if c.effect == s.effect)
         for name, info in alt_of(s.effect).items():
             c = _evaluate(family, calib, held, base, base_sc, (name,), norm, blocks, scales, stop)
-            lo, hi = bootstrap_gc_difference(base_sc, win.scores, c.scores, norm)
-            plausible = c.significant or (c.relevant and c.ci[1] >= win.ci[0])
+            lo, hi, plausible = _weigh(base_sc, win, c, norm)
             better = bool(plausible and hi < 0.0)
             row = c.as_dict() | {"explanation": name, "instead_of": s.effect, **info,
                                  "effect_gap_closure": win.gap_closure, "gc_difference_ci90": [lo, hi],
                                  "confusable": bool(plausible and lo <= 0.0 <= hi), "better": better,
-                                 "dropped": False}
+                                 "dropped": False, "also": False}
             if better:
                 beside = _evaluate(family, calib, held, c.fit, c.scores, (name, s.effect), norm, blocks, scales,
                                    stop)
@@ -697,8 +703,8 @@ def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, 
                 row |= {"beside_effect": {"gap_closure": both.gap_closure, "gap_closure_ci90": list(both.ci),
                                           "delta_bic": both.delta_bic, "significant": bool(also),
                                           "relevant": both.relevant,
-                                          "params": {k: v for k, v in both.fit.params.items() if "." in k}}}
-            row["also"] = bool(row.get("beside_effect", {}).get("significant", False))
+                                          "params": {k: v for k, v in both.fit.params.items() if "." in k}},
+                        "also": bool(also)}
             out.append(row)
     return out
 
@@ -825,8 +831,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
             if c is win or c.effect in (s.effect for s in selected):
                 continue
             # confusable: it explains the gap too, and the held-out data cannot say which does more
-            lo, hi = bootstrap_gc_difference(base_sc, win.scores, c.scores, norm)
-            plausible = c.significant or (c.relevant and c.ci[1] >= win.ci[0])
+            lo, hi, plausible = _weigh(base_sc, win, c, norm)
             if plausible and lo <= 0.0 <= hi:
                 confusable.append(c.effect)
                 if protocol:
@@ -834,7 +839,10 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                     separate.append({"effects": [win.effect, c.effect], "experiments": only or
                                      protocol.get(win.effect, [])})
     alternatives = _alternatives(family, calib, held, base, base_sc, selected, singles, norm, blocks, scales, stop)
-    dropped = {a["instead_of"] for a in alternatives if a["dropped"]}
+    dropped: dict[str, list[str]] = {}  # effect → the alternatives that took its place
+    for a in alternatives:
+        if a["dropped"]:
+            dropped.setdefault(a["instead_of"], []).append(a["explanation"])
     if dropped:
         # what is left is scored as the last effect kept (a later round's fit includes the dropped
         # effect; families name alternatives for effects that come alone, as sensor offsets do)
@@ -857,9 +865,8 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         "where": where(family, held, base),
         # an effect taken out of the verdict for an alternative keeps its single fit's significance
         # against the baseline here, and says what took its place
-        "ranking": [c.as_dict() | ({"dropped_for": [a["explanation"] for a in alternatives
-                                                     if a["dropped"] and a["instead_of"] == c.effect]}
-                                   if c.effect in dropped else {}) for c in singles],
+        "ranking": [c.as_dict() | ({"dropped_for": dropped[c.effect]} if c.effect in dropped else {})
+                    for c in singles],
         "combination": [c.as_dict() for c in selected],
         "alternatives": alternatives,
         "verdict": {"effects": [c.effect for c in selected], "confusable_with": confusable,
