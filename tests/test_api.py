@@ -406,8 +406,11 @@ def test_the_cpr_rig_maps_the_valve_and_fits_the_flow_model(client: TestClient) 
     # (signals away from 5 V: inside the null zone a test takes a minute or more of rig time)
     assert [row["u"] for row in rows] == [4.6, 5.4]
     # the valve opens towards the supply as u falls from 5 V: more pressure ratio at 4.6 V than at 5.4 V
-    # (a ratio of two sensors' 0.5 s means: where the valve fills to P_s it reads 1 within their noise)
-    assert 0.0 < rows[1]["a"] < rows[0]["a"] <= 1.0 + 1e-3
+    # Where the valve fills to P_s the ratio reads 1 within what its two 0.5 s means leave: PS-0 carries
+    # the regulator's 6 Hz cycle (±0.03 bar), which 0.5 s does not cover in whole periods. Measured
+    # spread of this ratio on this grid: SD 2.7e-4 on the simulated clock (40 noise seeds), 4.5e-4 with
+    # ticks late as on a loaded machine (30 runs, max 1.0011; 1.0012 was seen in CI): the bound is ≈ 5 SD.
+    assert 0.0 < rows[1]["a"] < rows[0]["a"] <= 1.0 + 2.5e-3
     assert all(row["r2"] > 0.9 for row in rows)
     assert set(res["validation_mape_pct"]) == {"new", "standard", "improved", "bobrow"}
     assert all(math.isfinite(v) for v in res["validation_mape_pct"].values())
