@@ -341,7 +341,8 @@ def _diagnose(args: argparse.Namespace) -> int:
         print(f"{name + ': ' if name else ''}{v['summary']}"
               + (f" (confusable with {', '.join(v['confusable_with'])})" if v["confusable_with"] else "")
               + f"; E {r['how_far']['e_before']:.3g} → {r['how_far']['e_after']:.3g} "
-              f"(floor {r['how_far']['e_floor']:.3g})")
+              + (f"with {' + '.join(m)} " if (m := r["how_far"].get("model", v["effects"])) != v["effects"] else "")
+              + f"(floor {r['how_far']['e_floor']:.3g})")
         uneven = r["experiments"].get("irregular_sampling", {})
         if uneven:
             print("  sampled unevenly (replayed on their own clock, samples missing from a log not scored): "

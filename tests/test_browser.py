@@ -405,7 +405,10 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
                             "gap_closure": 0.65, "effect_gap_closure": 0.66, "gc_difference_ci90": [-0.06, 0.11],
                             "confusable": True, "better": False, "dropped": False}]
     rep["ranking"][0]["dropped_for"] = ["friction_per_direction"]  # as where the alternative explains more
+    rep["how_far"]["model"] = ["sensor_bias"]
     page.evaluate("rep => show(rep)", rep)
+    expect(page.locator("#detail")).to_contain_text("Gap left unexplained with sensor_bias: ")
+    expect(page.locator("#howfar")).to_contain_text("after with sensor_bias")
     expect(page.locator("#ranking")).to_contain_text("(not the verdict: friction_per_direction explains more)")
     expect(page.locator("#detail")).to_contain_text(
         "Or friction_per_direction (friction off per direction) instead of sensor_bias: these logs cannot tell them "

@@ -409,8 +409,11 @@ def test_an_effect_is_weighed_against_a_baseline_of_another_form_that_could_clos
     (alt,) = r["alternatives"]
     assert alt["explanation"] == "per_sign" and alt["instead_of"] == "offset"
     v = r["verdict"]
+    hf = r["how_far"]
+    closed = (hf["e_before"] - hf["e_after"]) / (hf["e_before"] - hf["e_floor"])
     if outcome == "offset alone":
         assert v["effects"] == ["offset"] and v["alternatives"] == [] and v["summary"] == "offset"
+        assert hf["model"] == ["offset"] and closed == pytest.approx(r["ranking"][0]["gap_closure"])
         assert alt["gc_difference_ci90"][0] > 0.0
         assert not (alt["confusable"] or alt["better"] or alt["dropped"] or alt["also"])
     elif outcome == "dropped":
@@ -418,7 +421,8 @@ def test_an_effect_is_weighed_against_a_baseline_of_another_form_that_could_clos
         assert alt["params"]["per_sign.k"] == pytest.approx(0.15, abs=0.01)  # 2·(1 + k)·|x| = 2|x| + 0.3|x|
         assert v["effects"] == [] and v["alternatives"] == ["per_sign"]
         assert v["summary"].startswith("no significant effect; offset closed the gap, but per_sign")
-        assert r["how_far"]["e_after"] == r["how_far"]["e_before"]  # no effect left to credit
+        # no effect is left to credit, but the gap is not unexplained: the alternative closes it
+        assert hf["model"] == ["per_sign"] and closed == pytest.approx(alt["gap_closure"]) and closed > 0.9
         top = r["ranking"][0]  # the ranking stays as fitted, and says what took the offset's place
         assert top["effect"] == "offset" and top["significant"] and top["dropped_for"] == ["per_sign"]
     elif outcome == "also":
@@ -428,10 +432,14 @@ def test_an_effect_is_weighed_against_a_baseline_of_another_form_that_could_clos
         assert together["offset.c"] == pytest.approx(0.3, abs=0.01) and together["per_sign.k"] == pytest.approx(
             0.15, abs=0.01)
         assert "with per_sign beside offset" in v["summary"] and "offset.c = 0.3" in v["summary"]
+        # how far: the two fitted together, which close more than the offset alone
+        offset_alone = r["ranking"][0]["gap_closure"]
+        assert hf["model"] == ["offset", "per_sign"] and closed > offset_alone + 0.5 * (1.0 - offset_alone)
     else:
         assert v["effects"] == ["offset"] and v["alternatives"] == ["per_sign"]
         assert alt["confusable"] and not alt["dropped"]
         assert "these logs cannot tell them apart; to tell: visit x near 0" in v["summary"]
+        assert hf["model"] == ["offset"]  # the verdict's effect; the alternative is only named
 
 
 def test_a_diagnosis_without_an_effect_weighs_no_alternative() -> None:

@@ -564,6 +564,13 @@ def test_friction_off_per_direction_is_not_passed_off_as_a_sensor_offset() -> No
     # dropped when the friction explains more and the offsets add nothing beside it; kept, and
     # said to be confusable, when the logs cannot tell
     assert v["effects"] == ([] if alt["dropped"] else ["sensor_bias"]), v
+    # how far the gap shrinks is told for the model the verdict describes
+    hf = rep["how_far"]
+    assert hf["model"] == (["friction_per_direction"] if alt["dropped"] else
+                           ["friction_per_direction", "sensor_bias"] if alt["better"] else ["sensor_bias"]), hf
+    if alt["dropped"]:
+        closed = (hf["e_before"] - hf["e_after"]) / (hf["e_before"] - hf["e_floor"])
+        assert closed == pytest.approx(alt["gap_closure"]), hf
 
 
 def test_every_parameter_off_by_its_own_error_stays_within_the_spread_and_physical() -> None:
@@ -584,3 +591,5 @@ def test_every_parameter_off_by_its_own_error_stays_within_the_spread_and_physic
                                                                         / n.friction.ts_ccw[0])
     with pytest.raises(ValueError, match="no parameter-error kind 'per-entry'; known: grouped, each"):
         run_case(None, seed=3, errors="per-entry")
+    with pytest.raises(ValueError, match=r"friction_asymmetry = 0.7: outside its allowed range \[-0.5, 0.5\]"):
+        run_case(None, seed=3, friction_asymmetry=0.7)

@@ -649,7 +649,8 @@ def _weigh(base_sc: Scores, win: Candidate, c: Candidate, norm: _Norm) -> tuple[
 
 def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, base_sc: Scores,
                   selected: list[Candidate], singles: list[Candidate], norm: _Norm, blocks: int,
-                  scales: dict[str, float], stop: threading.Event | None) -> list[dict[str, Any]]:
+                  scales: dict[str, float], stop: threading.Event | None
+                  ) -> tuple[list[dict[str, Any]], dict[str, tuple[tuple[str, ...], Scores]]]:
     """Each selected effect against the family's explanations of the same gap that need no effect.
 
     A family may name, per effect, a baseline of another form that could
@@ -667,11 +668,18 @@ def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, 
     clearly more and the alternative is significant on its own, the
     alternative is fitted beside the effect: significant there too, both
     are present (``also``), and the joint fit's parameters are reported.
+
+    Returns:
+        The rows, and per effect whose verdict the alternatives change, the
+        model the verdict then describes (its effects and alternatives) with
+        its held-out scores: the alternative alone (dropped), the effect
+        beside it (better, not dropped), or both fitted together (``also``).
     """
     alt_of = getattr(family, "alternatives", None)
     if alt_of is None:
-        return []
+        return [], {}
     out: list[dict[str, Any]] = []
+    verdict_model: dict[str, tuple[tuple[str, ...], Scores]] = {}
     for s in selected:
         win = next(c for c in singles if c.effect == s.effect)
         for name, info in alt_of(s.effect).items():
@@ -688,6 +696,8 @@ def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, 
                 row |= {"effect_beside_it": {"gap_closure": beside.gap_closure, "gap_closure_ci90": list(beside.ci),
                                              "delta_bic": beside.delta_bic, "significant": beside.significant},
                         "dropped": not beside.significant}
+                verdict_model[s.effect] = ((name,), c.scores) if row["dropped"] else ((name, s.effect),
+                                                                                     beside.scores)
             elif not row["confusable"] and c.significant:
                 # the effect explains more, but the alternative may be there as well (a rig with sensor
                 # offsets whose friction also differs per direction: the torque offset took the
@@ -705,8 +715,10 @@ def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, 
                                           "relevant": both.relevant,
                                           "params": {k: v for k, v in both.fit.params.items() if "." in k}},
                         "also": bool(also)}
+                if also:
+                    verdict_model[s.effect] = ((s.effect, name), both.scores)
             out.append(row)
-    return out
+    return out, verdict_model
 
 
 def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]]) -> str:
@@ -838,16 +850,24 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                     only = [x for x in protocol.get(win.effect, []) if x not in protocol.get(c.effect, [])]
                     separate.append({"effects": [win.effect, c.effect], "experiments": only or
                                      protocol.get(win.effect, [])})
-    alternatives = _alternatives(family, calib, held, base, base_sc, selected, singles, norm, blocks, scales, stop)
+    alternatives, verdict_model = _alternatives(family, calib, held, base, base_sc, selected, singles, norm, blocks,
+                                                scales, stop)
     dropped: dict[str, list[str]] = {}  # effect → the alternatives that took its place
     for a in alternatives:
         if a["dropped"]:
             dropped.setdefault(a["instead_of"], []).append(a["explanation"])
-    if dropped:
-        # what is left is scored as the last effect kept (a later round's fit includes the dropped
-        # effect; families name alternatives for effects that come alone, as sensor offsets do)
-        selected = [c for c in selected if c.effect not in dropped]
-        ref_sc = selected[-1].scores if selected else base_sc
+    kept = [c for c in selected if c.effect not in dropped]
+    if len(selected) == 1 and selected[0].effect in verdict_model:
+        # how far the gap shrinks with the model the verdict describes (both fitted together, or the
+        # alternative in the effect's place); families name alternatives for effects that come alone,
+        # and those fits start from the effect's single fit, not from a greedy combination's
+        names, ref_sc = verdict_model[selected[0].effect]
+        model = list(names)
+    else:
+        # what is left is scored as the last effect kept (a later round's fit includes the dropped effect)
+        ref_sc = (kept[-1].scores if kept else base_sc) if dropped else ref_sc
+        model = [c.effect for c in kept]
+    selected = kept
     e_final, nr_final = _e(ref_sc, norm)
     chans = list(family.channels)
     return {
@@ -876,7 +896,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                     "summary": _summary(selected, alternatives)},
         "how_far": {"before": dict(zip(chans, map(float, nr_base), strict=True)),
                     "after": dict(zip(chans, map(float, nr_final), strict=True)),
-                    "e_before": e_base, "e_after": e_final, "e_floor": e_floor,
+                    "model": model, "e_before": e_base, "e_after": e_final, "e_floor": e_floor,
                     "unexplained_share": (e_final - e_floor) / (e_base - e_floor) if e_base - e_floor > 1e-12
                     else 0.0},
     }

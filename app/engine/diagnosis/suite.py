@@ -232,7 +232,8 @@ def oracle_gap_closure(report: dict[str, Any], held: list[Experiment], x: dict[s
 
 
 def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float = 1.0,
-             structural: str | None = None, errors: str = "grouped") -> dict[str, Any]:
+             structural: str | None = None, errors: str = "grouped",
+             friction_asymmetry: float = 0.0) -> dict[str, Any]:
     """Generate one case's logs and diagnose them.
 
     Args:
@@ -243,6 +244,8 @@ def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float
         structural: A key of :data:`STRUCTURAL`: the rig also differs from
             the model in form (the oracle GC then still uses the model's form).
         errors: A key of :data:`ERRORS`: how the nominal parameters are off.
+        friction_asymmetry: The rig's static and Coulomb friction also off per
+            direction by this much (:func:`friction_per_direction`; 0: not) [-].
 
     Returns:
         ``effect``, ``magnitude``, ``rank`` of the true effect in the ranking
@@ -256,6 +259,10 @@ def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float
         if structural not in STRUCTURAL:
             raise ValueError(f"no structural variant {structural!r}; known: {', '.join(STRUCTURAL)}")
         rig = STRUCTURAL[structural][1](rig)
+    if not -0.5 <= friction_asymmetry <= 0.5:
+        raise ValueError(f"friction_asymmetry = {friction_asymmetry}: outside its allowed range [-0.5, 0.5]")
+    if friction_asymmetry:
+        rig = friction_per_direction(rig, friction_asymmetry)
     if effect is not None:
         rig = rig.with_effects(**{effect: MAGNITUDES[effect][magnitude]})
     exps = run_protocol(rig, seed=seed, scale=scale)
@@ -271,8 +278,8 @@ def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float
     gc = next((r["gap_closure"] for r in rep["ranking"] if r["effect"] == effect), None)
     oracle = oracle_gap_closure(rep, held, true_params(rig, effect), (effect,) if effect else ())
     return {"effect": effect, "magnitude": magnitude, "seed": seed, "structural": structural, "errors": errors,
-            "rank": rank, "first": first, "verdict": found, "confusable_with": rep["verdict"]["confusable_with"],
-            "alternatives": rep["verdict"]["alternatives"],
+            "friction_asymmetry": friction_asymmetry, "rank": rank, "first": first, "verdict": found,
+            "confusable_with": rep["verdict"]["confusable_with"], "alternatives": rep["verdict"]["alternatives"],
             "gap_closure": gc, "oracle_gap_closure": oracle, "seconds": secs, "report": rep}
 
 
@@ -296,8 +303,8 @@ def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
         "null_cases": len(null),
         "false_positive_rate": (sum(1 for r in null if r["verdict"]) / len(null)) if null else None,
         "median_oracle_gc": float(np.median([r["oracle_gap_closure"] for r in eff])) if eff else None,
-        "rows": [{k: r.get(k) for k in ("effect", "magnitude", "seed", "structural", "errors", "rank", "verdict",
-                                        "confusable_with", "alternatives", "gap_closure", "oracle_gap_closure",
-                                        "seconds")}
+        "rows": [{k: r.get(k) for k in ("effect", "magnitude", "seed", "structural", "errors", "friction_asymmetry",
+                                        "rank", "verdict", "confusable_with", "alternatives", "gap_closure",
+                                        "oracle_gap_closure", "seconds")}
                  for r in results],
     }
