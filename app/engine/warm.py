@@ -16,7 +16,8 @@ process of its own, so that they compile on several cores at once):
   controller pipeline with the fuzzy gains, the autotuner's PRV controller
   and the compiled workout loop;
 - ``replay``: the diagnosis replay (pneumatic network along a measured
-  motion, the friction law) and the linear friction fit's onset model.
+  motion, the friction law), the linear friction fit's onset model and the
+  valve identification's pressure integrator.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ def _replay() -> None:
 
     from app.engine.diagnosis.logs import Experiment
     from app.engine.diagnosis.rotary import RotaryFamily
+    from app.engine.ident.dcv import compile_integrator
     from app.engine.ident.fitting import compile_onset_model
 
     # a made-up log (not the simulator's: that is the other part's to compile): 2 s at 200 Hz of
@@ -68,6 +70,7 @@ def _replay() -> None:
     fam = RotaryFamily()
     fam.predict(fam.prepare(exp), {s.name: s.x0 for s in fam.baseline()}, ())
     compile_onset_model()
+    compile_integrator()
 
 
 PARTS: dict[str, Callable[[], None]] = {"sim": _sim, "replay": _replay}

@@ -605,6 +605,13 @@ def _integrate(pg: np.ndarray, sg: np.ndarray, table: np.ndarray, t: np.ndarray,
     return out
 
 
+def compile_integrator() -> None:
+    """Compile (or load from the cache) the validation runs' integrator now, not in the first validation."""
+    pg = np.linspace(1.0e5, 6.0e5, 8)
+    _integrate(pg, np.array([5.0, 5.001]), np.zeros((8, 2)), np.array([0.0, 0.01]), np.array([5.0, 5.0]), 1.0e5,
+               INTEGRATION_STEP_S)
+
+
 @dataclass
 class SignalFit:
     """Flow-model parameters of one signal at P_s = 5 bar (Table 4.1 row).
