@@ -1,16 +1,21 @@
-"""How hard the thesis's Cascade PID gains toggle the counter chamber, by vane angle (docs/controllers.md).
+"""How hard the Cascade PID toggles the counter chamber, by vane angle, with two gain sets (docs/controllers.md).
 
-Runs SC-1 with the Cascade PID (Eq 3.26 gains) at both targets and in both
-directions and measures, over each run's evaluation window, the
-period-2 toggle of both chamber pressures: a ±A square wave at the control
-rate has second differences of ±4A, so A = |P[k+1] − 2P[k] + P[k−1]| / 4
-[bar]. Prints one JSON object: per case and chamber, the median amplitude
-over the window and per band of |θ| [rad]. The chamber the vane turns
-towards shrinks (V = V_dead + A_v·r·(θ_max ∓ θ)), so the pressure loop's
-gain grows as 1/V; the toggle follows it.
+Runs SC-1 with the Cascade PID at both targets and in both directions,
+once with the thesis's hand-set gains (Eq 3.26) and once with the gains
+the station's own autotuner (thesis 3.6.2, ``pid_tune.autotune_sim``)
+returns for PRV-a and PRV-b on the simulated rig, and measures over each
+run's evaluation window the period-2 toggle of both chamber pressures: a
+±A square wave at the control rate has second differences of ±4A, so
+A = |P[k+1] − 2P[k] + P[k−1]| / 4 [bar]. The chamber the vane turns towards
+shrinks (V = V_dead + A_v·r·(θ_max ∓ θ)), so the pressure loop's gain grows
+as 1/V; with gains near the loop's limit the toggle follows it.
+
+Prints one JSON object: the gains, and per gain set and case the six
+metrics and, per chamber, the toggle's median over the window and per band
+of |θ| [rad].
 
 Run: ``python bench/pid_chatter.py [--seed 0]`` inside the project
-environment (a few seconds).
+environment (about ten seconds).
 """
 
 from __future__ import annotations
@@ -22,10 +27,14 @@ from typing import Any
 
 import numpy as np
 
-from app.engine.scenarios import main_cases, run_case
+from app.engine.ident.pid_tune import AutotuneSpec, autotune_sim
+from app.engine.scenarios import ScenarioSettings, _case_seed, case_controller, case_program, main_cases, score_case
+from app.engine.sim import run_workout
 
 BANDS_RAD = (0.0, 0.1, 0.3, 0.5, 0.7, 1.0, np.inf)
 """Edges of the |θ| bands [rad]."""
+
+Gains = tuple[tuple[float, float, float], tuple[float, float, float]]
 
 
 def toggle_amplitude(p: np.ndarray) -> np.ndarray:
@@ -33,17 +42,28 @@ def toggle_amplitude(p: np.ndarray) -> np.ndarray:
     return np.abs(p[2:] - 2.0 * p[1:-1] + p[:-2]) / 4.0
 
 
-def measure(seed: int) -> list[dict[str, Any]]:
-    """SC-1 with the Cascade PID: the toggle per case, chamber and |θ| band."""
+def autotuned(seed: int) -> Gains:
+    """(K_p, K_i, K_d) of PRV-a and PRV-b as the station's autotuner returns them on the simulated rig."""
+    a, b = (autotune_sim(AutotuneSpec(side=s), seed=seed)["tuning"].gains for s in "ab")
+    return (tuple(float(g) for g in a), tuple(float(g) for g in b))  # type: ignore[return-value]
+
+
+def measure(seed: int, gains: Gains | None) -> list[dict[str, Any]]:
+    """SC-1 with the Cascade PID (``gains``; None: Eq 3.26): metrics and the toggle per chamber and |θ| band."""
+    s = ScenarioSettings()
     out = []
     for case in (c for c in main_cases() if c.scenario == "SC-1"):
-        run = run_case(case, "pid", seed=seed)
-        t, theta = run.result.column("t")[1:-1], run.result.column("theta")[1:-1]
-        inside = (t >= run.window[0]) & (t <= run.window[1])
+        prog, t_end, t_d = case_program(case, s)
+        res = run_workout(None, prog, duration=t_end + 0.5, rate_hz=s.rate_hz, seed=_case_seed(seed, case),
+                          control=case_controller(case, "pid", s, pid_gains=gains))
+        metrics, window, _ = score_case(case, res.column("t"), res.column("torque"), res.column("mode"), t_end, t_d, s)
+        t, theta = res.column("t")[1:-1], res.column("theta")[1:-1]
+        inside = (t >= window[0]) & (t <= window[1])
         band = np.digitize(np.abs(theta), BANDS_RAD[1:-1])
-        row: dict[str, Any] = {"scenario": case.scenario, "target_nm": case.target, "direction": case.direction}
+        row: dict[str, Any] = {"scenario": case.scenario, "target_nm": case.target, "direction": case.direction,
+                               "metrics": metrics}
         for ch in ("p_a", "p_b"):
-            amp = toggle_amplitude(run.result.column(ch))
+            amp = toggle_amplitude(res.column(ch))
             per_band = {f"{lo:g}-{hi:g}": (float(np.median(amp[inside & (band == k)]))
                                            if np.any(inside & (band == k)) else None)
                         for k, (lo, hi) in enumerate(itertools.pairwise(BANDS_RAD))}
@@ -55,4 +75,7 @@ def measure(seed: int) -> list[dict[str, Any]]:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--seed", type=int, default=0)
-    print(json.dumps(measure(ap.parse_args().seed), indent=1))
+    seed = ap.parse_args().seed
+    tuned = autotuned(seed)
+    print(json.dumps({"autotuned_gains": {"a": tuned[0], "b": tuned[1]},
+                      "Eq 3.26": measure(seed, None), "autotuned": measure(seed, tuned)}, indent=1))
