@@ -28,8 +28,7 @@ from typing import Any
 import numpy as np
 
 from app.engine.ident.pid_tune import AutotuneSpec, autotune_sim
-from app.engine.scenarios import ScenarioSettings, _case_seed, case_controller, case_program, main_cases, score_case
-from app.engine.sim import run_workout
+from app.engine.scenarios import main_cases, run_case
 
 BANDS_RAD = (0.0, 0.1, 0.3, 0.5, 0.7, 1.0, np.inf)
 """Edges of the |θ| bands [rad]."""
@@ -44,24 +43,24 @@ def toggle_amplitude(p: np.ndarray) -> np.ndarray:
 
 def autotuned(seed: int) -> Gains:
     """(K_p, K_i, K_d) of PRV-a and PRV-b as the station's autotuner returns them on the simulated rig."""
-    a, b = (autotune_sim(AutotuneSpec(side=s), seed=seed)["tuning"].gains for s in "ab")
-    return (tuple(float(g) for g in a), tuple(float(g) for g in b))  # type: ignore[return-value]
+    def gains(side: str) -> tuple[float, float, float]:
+        kp, ki, kd = autotune_sim(AutotuneSpec(side=side), seed=seed)["tuning"].gains
+        return float(kp), float(ki), float(kd)
+
+    return gains("a"), gains("b")
 
 
 def measure(seed: int, gains: Gains | None) -> list[dict[str, Any]]:
     """SC-1 with the Cascade PID (``gains``; None: Eq 3.26): metrics and the toggle per chamber and |θ| band."""
-    s = ScenarioSettings()
     out = []
     for case in (c for c in main_cases() if c.scenario == "SC-1"):
-        prog, t_end, t_d = case_program(case, s)
-        res = run_workout(None, prog, duration=t_end + 0.5, rate_hz=s.rate_hz, seed=_case_seed(seed, case),
-                          control=case_controller(case, "pid", s, pid_gains=gains))
-        metrics, window, _ = score_case(case, res.column("t"), res.column("torque"), res.column("mode"), t_end, t_d, s)
+        run = run_case(case, "pid", seed=seed, pid_gains=gains)
+        res = run.result
         t, theta = res.column("t")[1:-1], res.column("theta")[1:-1]
-        inside = (t >= window[0]) & (t <= window[1])
+        inside = (t >= run.window[0]) & (t <= run.window[1])
         band = np.digitize(np.abs(theta), BANDS_RAD[1:-1])
         row: dict[str, Any] = {"scenario": case.scenario, "target_nm": case.target, "direction": case.direction,
-                               "metrics": metrics}
+                               "metrics": run.metrics}
         for ch in ("p_a", "p_b"):
             amp = toggle_amplitude(res.column(ch))
             per_band = {f"{lo:g}-{hi:g}": (float(np.median(amp[inside & (band == k)]))

@@ -7,6 +7,7 @@ import json
 import math
 from contextlib import redirect_stdout
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -71,6 +72,26 @@ def test_runs_are_reproducible_from_a_seed() -> None:
     assert a.metrics == b.metrics
     assert a.metrics != c.metrics
     assert a.t_d == pytest.approx(4.0) and a.window[0] == pytest.approx(4.0)
+
+
+def test_integral_only_gains_stop_the_cascade_pid_toggling_the_counter_chamber() -> None:
+    """Eq 3.26's hand-set K_p/K_d toggle the shrinking counter chamber every tick; the integral-only
+    gains the station's autotuner returns (docs/identification.md: K_i ≈ 1.97) do not, and track
+    better (docs/controllers.md; bench/pid_chatter.py)."""
+    from app.engine.ident.pid_tune import THESIS_FINAL
+
+    case = Case("SC-1", 1.2, False, False)
+    thesis = run_case(case, "pid", seed=0)
+    assert run_case(case, "pid", seed=0, pid_gains=(THESIS_FINAL["a"], THESIS_FINAL["b"])).metrics == thesis.metrics
+    tuned = run_case(case, "pid", seed=0, pid_gains=((0.0, 1.965, 0.0), (0.0, 1.976, 0.0)))
+
+    def toggle(run: Any) -> float:  # median |second difference|/4 of P_b over the window [bar]
+        t, p = run.result.column("t")[1:-1], run.result.column("p_b")
+        inside = (t >= run.window[0]) & (t <= run.window[1])
+        return float(np.median(np.abs(p[2:] - 2.0 * p[1:-1] + p[:-2])[inside]) / 4.0)
+
+    assert toggle(thesis) > 0.1 and toggle(tuned) < 0.01
+    assert tuned.metrics["rmse"] < 0.5 * thesis.metrics["rmse"]
 
 
 def test_bad_scenario_settings_are_rejected() -> None:

@@ -245,6 +245,7 @@ def run_case(
     seed: int = 0,
     settings: ScenarioSettings | None = None,
     params: PlantParams | None = None,
+    pid_gains: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None,
 ) -> CaseRun:
     """Simulate one case with one controller and score it.
 
@@ -254,6 +255,7 @@ def run_case(
         seed: Base seed (the run's noise depends on it and on the case).
         settings: Workout shape.
         params: Plant parameters (the faithful default if omitted).
+        pid_gains: Cascade PID gains ((K_p, K_i, K_d) of PRV-a, of PRV-b); None keeps Eq 3.26's.
     """
     s = settings or ScenarioSettings()
     prog, t_end, t_d = case_program(case, s)
@@ -263,7 +265,8 @@ def run_case(
     if case.scenario == "SC-4" and t_d is not None:
         dist = np.zeros((n, 2))
         dist[int(round(t_d * s.rate_hz)):, 1] = s.dp_b_bar
-    res = run_workout(params, prog, duration=duration, rate_hz=s.rate_hz, control=case_controller(case, controller, s),
+    res = run_workout(params, prog, duration=duration, rate_hz=s.rate_hz,
+                      control=case_controller(case, controller, s, pid_gains=pid_gains),
                       seed=_case_seed(seed, case), disturbance_bar=dist)
     metrics, window, t_on = score_case(case, res.column("t"), res.column("torque"), res.column("mode"), t_end, t_d, s)
     return CaseRun(case, controller, metrics, window, t_on, t_d, res)
