@@ -350,6 +350,12 @@ def _diagnose(args: argparse.Namespace) -> int:
                               " off the median "
                               f"{1e3 * u['median_interval_s']:.3g} ms, "
                               f"the longest {1e3 * u['largest_interval_s']:.3g} ms)" for n, u in uneven.items()))
+        flat = r["experiments"].get("flat_channels", {})
+        if flat:
+            print("  read one value throughout (fine where the quantity did not change, a clamped handle or an "
+                  "ideal supply; a sensor reading nothing bends the fit to match it): "
+                  + ", ".join(f"{n} ({', '.join(f'{c} = {v:g}' for c, v in chans.items())})"
+                              for n, chans in flat.items()))
     return 0
 
 

@@ -406,7 +406,10 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
                             "confusable": True, "better": False, "dropped": False}]
     rep["ranking"][0]["dropped_for"] = ["friction_per_direction"]  # as where the alternative explains more
     rep["how_far"]["model"] = ["sensor_bias"]
+    rep["experiments"]["flat_channels"] = {"isotonic-1": {"torque": 0.0}}
     page.evaluate("rep => show(rep)", rep)
+    expect(page.locator("#detail")).to_contain_text(
+        "a sensor reading nothing bends the fit to match it): isotonic-1 (torque = 0.00).")
     expect(page.locator("#detail")).to_contain_text("Gap left unexplained with sensor_bias: ")
     expect(page.locator("#howfar")).to_contain_text("after with sensor_bias")
     expect(page.locator("#ranking")).to_contain_text("(not the verdict: friction_per_direction explains more)")

@@ -26,6 +26,7 @@ from app.engine.diagnosis.families import ChamberFamily, DriveFamily, split_time
 from app.engine.diagnosis.logs import (
     Experiment,
     LogFormatError,
+    flat_channels,
     on_uniform_grid,
     read_chamber_leak,
     read_emps,
@@ -207,7 +208,22 @@ def test_a_synthetic_leak_is_found_and_its_time_constant_recovered() -> None:
     assert r["ranking"][0]["params"]["external_leakage.tau"] == pytest.approx(400.0, rel=0.05)
     flat = Experiment("tight", t, {}, {"p": 8.5 + rng.normal(0, 0.002, t.size)}, {"p_atm_bar": 1.01325})
     a, b = split_time(flat)
-    assert diagnose(fam, [a], [b])["verdict"]["effects"] == []
+    r = diagnose(fam, [a], [b])
+    assert r["verdict"]["effects"] == [] and r["experiments"]["flat_channels"] == {}
+
+
+def test_a_channel_that_reads_one_value_throughout_is_named_in_the_report() -> None:
+    """A sensor reading nothing (unplugged; a rig model without that sensor) is fitted as a constant
+    measurement and bends the baseline: on the rotary protocol, torque read as 0 throughout took chamber
+    a's baseline NRMSE from 0.013 to 0.70 and hid a vane leak (scratch runs, nineteenth session).
+    The report names such channels, per log, with the value they read."""
+    t = np.arange(0, 150, 0.1)
+    dead = Experiment("dead", t, {}, {"p": np.full(t.size, 7.25)}, {"p_atm_bar": 1.01325})
+    assert flat_channels(dead) == {"p": 7.25}
+    assert flat_channels(Experiment("one", t[:1], {}, {"p": np.array([7.0])}, {})) == {}  # one sample says nothing
+    a, b = split_time(dead)
+    r = diagnose(ChamberFamily(), [a], [b])
+    assert r["experiments"]["flat_channels"] == {"dead[calibration]": {"p": 7.25}, "dead[held-out]": {"p": 7.25}}
 
 
 def test_the_diagnosis_keeps_blas_to_one_thread_and_gives_the_setting_back() -> None:
@@ -572,6 +588,23 @@ def test_cwrr_diagnose_says_which_logs_were_sampled_unevenly(tmp_path: Path,
             assert uneven[f"{name}[calibration]"]["irregular_intervals"] == 1
         else:
             assert "sampled unevenly" not in said and uneven == {}
+
+
+def test_cwrr_diagnose_names_a_channel_that_reads_one_value_throughout(tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """A closed-chamber record in refdata's format whose sensor reads 7.315 bar (gauge) in every sample."""
+    from app.cli import main
+
+    (tmp_path / "Dead").mkdir()
+    rows = [f"{f'{100 * k:,}'.replace(',', '.')}.000;3.658;7.315" for k in range(1500)]  # t [ms], p [V], p [bar]
+    (tmp_path / "Dead" / "Dead.csv").write_text("\n".join(rows) + "\n")
+    out = tmp_path / "Dead.json"
+    assert main(["diagnose", str(tmp_path / "Dead"), "--json", str(out)]) == 0
+    said = capsys.readouterr().out
+    # the adapter reads gauge pressure and the family works in absolute: 7.315 + 1.01325 bar
+    assert "read one value throughout" in said and "Dead[calibration] (p = 8.32825)" in said, said
+    flat = json.loads(out.read_text())["reports"]["Dead"]["experiments"]["flat_channels"]
+    assert flat == {"Dead[calibration]": {"p": pytest.approx(8.32825)}, "Dead[held-out]": {"p": pytest.approx(8.32825)}}
 
 
 def test_cwrr_diagnose_refuses_a_malformed_station_log(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

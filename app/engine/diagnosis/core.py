@@ -73,7 +73,7 @@ from scipy import stats
 from scipy.optimize import least_squares
 from threadpoolctl import threadpool_limits
 
-from app.engine.diagnosis.logs import sampling_irregularity
+from app.engine.diagnosis.logs import Experiment, flat_channels, sampling_irregularity
 
 BIC_STRONG = 10.0  # Kass & Raftery (1995): ΔBIC > 10 is very strong evidence
 GC_MIN = 0.2
@@ -878,7 +878,10 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                         # logs.on_uniform_grid): said, not hidden
                         "irregular_sampling": {getattr(e, "name", "?"): info for e in (*calib_exps, *held_exps)
                                                if hasattr(e, "t") and len(e.t) > 2
-                                               and (info := sampling_irregularity(np.asarray(e.t))) is not None}},
+                                               and (info := sampling_irregularity(np.asarray(e.t))) is not None},
+                        # never changes: a quantity that did not, or a sensor reading nothing (bends the fit)
+                        "flat_channels": {getattr(e, "name", "?"): flat for e in (*calib_exps, *held_exps)
+                                          if isinstance(e, Experiment) and (flat := flat_channels(e))}},
         "baseline": {"nrmse": dict(zip(chans, map(float, nr_base), strict=True)), "e": e_base,
                      "identifiability": base.identifiability()},
         "noise_floor": {"nrmse": dict(zip(chans, map(float, floor / spread), strict=True)), "e": e_floor},

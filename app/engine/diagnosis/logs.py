@@ -103,6 +103,20 @@ def sampling_irregularity(t: np.ndarray) -> dict[str, float] | None:
     return {"irregular_intervals": int(off.sum()), "largest_interval_s": float(dt.max()), "median_interval_s": med}
 
 
+def flat_channels(exp: Experiment) -> dict[str, float]:
+    """The measured channels that read one value throughout the log, with that value.
+
+    A sensor that reads nothing (unplugged, or a channel a rig model does not
+    produce) is fitted as if it measured a constant: the baseline bends its
+    parameters to match it, and every other channel pays. Whether the
+    quantity simply did not change (a clamped handle's encoder, an ideal
+    supply in a noise-free model) only the user can say, so the report
+    names such channels rather than refusing the log.
+    """
+    return {c: float(v[0]) for c, v in exp.channels.items()
+            if len(v) > 1 and np.all(np.isfinite(v)) and float(np.ptp(v)) == 0.0}
+
+
 def on_uniform_grid(exp: Experiment) -> Experiment:
     """The experiment on a uniform time grid at its median interval (itself if already uniform).
 
