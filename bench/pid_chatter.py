@@ -10,12 +10,13 @@ A = |P[k+1] − 2P[k] + P[k−1]| / 4 [bar]. The chamber the vane turns towards
 shrinks (V = V_dead + A_v·r·(θ_max ∓ θ)), so the pressure loop's gain grows
 as 1/V; with gains near the loop's limit the toggle follows it.
 
-Prints one JSON object: the gains, and per gain set and case the six
+Prints one JSON object: the gains; per gain set and SC-1 case the six
 metrics and, per chamber, the toggle's median over the window and per band
-of |θ| [rad].
+of |θ| [rad]; and the RMSE of all twelve main cases (SC-1–SC-4) with either
+gain set, beside Default's and Fuzzy's.
 
 Run: ``python bench/pid_chatter.py [--seed 0]`` inside the project
-environment (about ten seconds).
+environment (about fifteen seconds).
 """
 
 from __future__ import annotations
@@ -71,10 +72,21 @@ def measure(seed: int, gains: Gains | None) -> list[dict[str, Any]]:
     return out
 
 
+def rmse_all_cases(seed: int, tuned: Gains) -> list[dict[str, Any]]:
+    """RMSE [N·m] of the twelve main cases: Default, Fuzzy, and the Cascade PID with Eq 3.26's and ``tuned`` gains."""
+    return [{"scenario": c.scenario, "target_nm": c.target, "direction": c.direction,
+             "default": run_case(c, "default", seed=seed).metrics["rmse"],
+             "fuzzy": run_case(c, "fuzzy", seed=seed).metrics["rmse"],
+             "pid Eq 3.26": run_case(c, "pid", seed=seed).metrics["rmse"],
+             "pid autotuned": run_case(c, "pid", seed=seed, pid_gains=tuned).metrics["rmse"]}
+            for c in main_cases()]
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--seed", type=int, default=0)
     seed = ap.parse_args().seed
     tuned = autotuned(seed)
     print(json.dumps({"autotuned_gains": {"a": tuned[0], "b": tuned[1]},
-                      "Eq 3.26": measure(seed, None), "autotuned": measure(seed, tuned)}, indent=1))
+                      "Eq 3.26": measure(seed, None), "autotuned": measure(seed, tuned),
+                      "rmse_all_cases": rmse_all_cases(seed, tuned)}, indent=1))
