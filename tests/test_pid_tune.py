@@ -76,6 +76,7 @@ def test_tuner_puts_kp_on_zero_when_the_plant_barely_lags() -> None:
     assert tun.crossover_rad_s == pytest.approx(2.0, rel=0.01)
     assert tun.phase_margin_deg > 80 and not tun.exact
     assert "K_p < 0" in tun.note
+    assert "try these gains in SC-4 before exercising with them" in tun.note  # docs/controllers.md
 
 
 @pytest.mark.parametrize(("kw", "msg"), [({"side": "c"}, "side"), ({"pw_bar": 9.0}, "min. 1 bar and max. 8 bar"),

@@ -249,6 +249,13 @@ def tune_pid(frf: FrequencyResponse, wc: float = 2.0, pm_deg: float = 60.0, n: f
     if not exact and kp < 1e-9 and (np.exp(1j * target) / g).real < 0:
         note = (f"G(jω_c) lags only {-math.degrees(math.atan2(g.imag, g.real)):.1f}°: {pm_deg:g}° needs "
                 f"K_p < 0, so K_p sits on 0 and the margin is {pm:.1f}° (the thesis also got K_p = 0)")
+    if kp < 1e-9:
+        # bench/pid_chatter.py: with both loops tuned so, SC-4 at 0.6 N·m drove the torque to −0.69 N·m
+        # within 25 ms of the disturbance and the intention detector to supination (RMSE 1.14 N·m)
+        note += ("; " if note else "") + (
+            "without K_p nothing answers a pressure disturbance in its first ticks: on the simulated rig, "
+            "SC-4 at 0.6 N·m with both loops tuned to K_p = 0 switched the intention detector to supination. "
+            "The thesis set K_p by hand afterwards (Eq 3.26); try these gains in SC-4 before exercising with them")
     return PIDTuning(kp, ki, kd, n, w_x, pm, exact, note)
 
 
