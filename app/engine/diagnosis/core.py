@@ -857,16 +857,16 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         if a["dropped"]:
             dropped.setdefault(a["instead_of"], []).append(a["explanation"])
     kept = [c for c in selected if c.effect not in dropped]
+    model = [c.effect for c in kept]
     if len(selected) == 1 and selected[0].effect in verdict_model:
         # how far the gap shrinks with the model the verdict describes (both fitted together, or the
         # alternative in the effect's place); families name alternatives for effects that come alone,
         # and those fits start from the effect's single fit, not from a greedy combination's
         names, ref_sc = verdict_model[selected[0].effect]
         model = list(names)
-    else:
+    elif dropped:
         # what is left is scored as the last effect kept (a later round's fit includes the dropped effect)
-        ref_sc = (kept[-1].scores if kept else base_sc) if dropped else ref_sc
-        model = [c.effect for c in kept]
+        ref_sc = kept[-1].scores if kept else base_sc
     selected = kept
     e_final, nr_final = _e(ref_sc, norm)
     chans = list(family.channels)
