@@ -184,8 +184,8 @@ class Store:
                     _dumps(result) if result is not None else None, run_id))
 
     def runs(self, limit: int = 100, offset: int = 0, kind: str | None = None,
-             session_id: int | None = None) -> list[dict[str, Any]]:
-        """Newest first, optionally of one kind or one session."""
+             session_id: int | None = None, person: str | None = None) -> list[dict[str, Any]]:
+        """Newest first, optionally of one kind, one session or one person (each given filter applies)."""
         where: list[str] = []
         args: list[Any] = []
         if kind:
@@ -194,6 +194,9 @@ class Store:
         if session_id is not None:
             where.append("session_id=?")
             args.append(session_id)
+        if person is not None:
+            where.append("person=?")
+            args.append(person)
         q = "SELECT * FROM runs" + (" WHERE " + " AND ".join(where) if where else "") + \
             " ORDER BY id DESC LIMIT ? OFFSET ?"
         return [self._run(r) for r in self._exec(q, (*args, limit, offset))]

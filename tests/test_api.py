@@ -84,7 +84,7 @@ def test_an_unknown_query_parameter_is_refused_naming_it_and_changes_nothing(cli
     r = client.get("/api/runs?limit=5&sesion_id=3")  # misspelt, beside a known one
     assert r.status_code == 422
     assert r.json()["detail"][0]["msg"] == ("unknown query parameter 'sesion_id'; this endpoint takes "
-                                            "kind, limit, offset, session_id")
+                                            "kind, limit, offset, person, session_id")
     assert client.get("/api/runs?limit=5&session_id=3").status_code == 200
     # the query parameters of a route's dependencies count as its own; the dashboard's address takes any
     assert client.get("/api/live?since=0&max_rows=2").status_code == 200
@@ -173,6 +173,30 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
     assert client.get("/api/runs/99999").status_code == 404
     assert client.get("/api/runs/99999/export").status_code == 404
     assert client.get("/api/runs/99999/export", params={"fmt": "parquet"}).status_code == 404
+
+
+def test_runs_are_listed_by_person_and_kind_and_a_misspelt_filter_is_refused(client: TestClient) -> None:
+    client.post("/api/engine/connect")
+    ids = {}
+    for person in ("P-007", "P-008", "P-007"):
+        r = client.post("/api/engine/start", json={"scenario": "SC-1", "target_nm": 1.0, "person": person})
+        assert r.status_code == 200, r.text
+        client.post("/api/engine/stop")
+        ids.setdefault(person, []).append(r.json()["run_id"])
+    got = client.get("/api/runs", params={"person": "P-007"}).json()
+    assert [x["id"] for x in got] == ids["P-007"][::-1] and {x["person"] for x in got} == {"P-007"}
+    assert [x["id"] for x in client.get("/api/runs", params={"person": "P-008", "kind": "workout"}).json()] \
+        == ids["P-008"]
+    assert client.get("/api/runs", params={"person": "P-009"}).json() == []
+    assert client.get("/api/runs", params={"person": "P-007", "limit": 1, "offset": 1}).json()[0]["id"] \
+        == ids["P-007"][0]
+    # a typo is a 422 naming the field and the kinds there are, not an empty list that looks like no runs
+    r = client.get("/api/runs", params={"kind": "workouts"})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "kind"]
+    assert "'workout'" in r.json()["detail"][0]["msg"] and "'diagnosis'" in r.json()["detail"][0]["msg"]
+    r = client.get("/api/runs", params={"person": "P 007; --"})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "person"]
+    assert client.get("/api/sessions", params={"person": "P 007"}).status_code == 422
 
 
 def test_stop_keeps_what_was_recorded(client: TestClient) -> None:

@@ -154,6 +154,16 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     with page.expect_download() as dl:
         row.get_by_text("PARQUET").click()
     assert Path(dl.value.path()).read_bytes()[:4] == b"PAR1"
+    # the history narrows to one person: nobody else's runs, and a plain "none" for a person without any
+    page.fill("#hist-person", "P-008")
+    page.locator("#hist-person").dispatch_event("change")
+    expect(page.locator("#hist-msg")).to_have_text("no runs of P-008")
+    expect(page.locator("#runs tbody tr")).to_have_count(0)
+    page.fill("#hist-person", "P-007")
+    page.locator("#hist-person").dispatch_event("change")
+    expect(page.locator("#hist-msg")).to_have_text("runs 1–1 of P-007")
+    expect(page.locator("#runs tbody tr").first).to_contain_text("P-007")
+    expect(page.locator("#hist-older")).to_be_disabled()
 
     # issue 7: the emergency stop is always there and always enabled; it latches until cleared
     estop = page.locator("#estop")

@@ -7,7 +7,8 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 # who a run is for, as every request that starts one takes it
-PersonId = Annotated[str, Field(max_length=64, pattern=r"^[A-Za-z0-9_.-]*$")]
+PERSON_PATTERN = r"^[A-Za-z0-9_.-]*$"
+PersonId = Annotated[str, Field(max_length=64, pattern=PERSON_PATTERN)]
 Notes = Annotated[str, Field(max_length=2000)]
 SessionRef = Annotated[int | None, Field(ge=1, le=2**62, description="therapy session (person taken from it)")]
 

@@ -29,7 +29,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol, get_args
 
 import numpy as np
 
@@ -128,10 +128,18 @@ class Rig:
                                  "(the cylinders of thesis Tables 4.5–4.6)")
 
 
+RunKind = Literal["workout", "rotary_friction", "linear_friction", "dcv_flow", "pid_tuning", "diagnosis_protocol",
+                  "protocol", "diagnosis", "imported"]
+"""What a stored run is: an exercise, an identification or tuning, the diagnosis protocol (its own run and
+one per experiment's log), a diagnosis, or a log imported from elsewhere. Typed, so that a new kind is
+added here, where the API's run filter and the dashboard's history labels look for it."""
+RUN_KINDS: tuple[str, ...] = get_args(RunKind)
+
+
 class RunSink(Protocol):
     """Where finished (and started) runs are reported; the server's store implements it."""
 
-    def run_started(self, kind: str, spec: dict[str, Any], log_csv: str) -> int:
+    def run_started(self, kind: RunKind, spec: dict[str, Any], log_csv: str) -> int:
         """Record a new run; returns its id."""
         ...
 
@@ -562,7 +570,7 @@ class Station:
             self._state = State.RUNNING
             return self._run_id
 
-    def estimate(self, procedure: Any, kind: str, fit: Callable[[Any], dict[str, Any]],
+    def estimate(self, procedure: Any, kind: RunKind, fit: Callable[[Any], dict[str, Any]],
                  rig: str = "rotary", spec: dict[str, Any] | None = None,
                  rate_hz: float | None = None, recorder: Any = None) -> int | None:
         """idle → identifying: run an identification procedure at its rate.

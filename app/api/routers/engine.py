@@ -205,7 +205,7 @@ def _identify(station: StationDep, proc: Any, estimator: Any, rig: str, spec: di
     def fit(p: Any) -> dict[str, Any]:
         return _friction_result(p.data, estimator(with_ci=False).fit(p.data).params_)
 
-    run_id = station.estimate(proc, f"{rig}_friction", fit, rig, spec)
+    run_id = station.estimate(proc, "rotary_friction" if rig == "rotary" else "linear_friction", fit, rig, spec)
     return Started(run_id=run_id, status=EngineStatus(**station.status()))
 
 

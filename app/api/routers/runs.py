@@ -17,8 +17,9 @@ from pydantic import BaseModel, Field
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ
 from app.api.deps import IdPath, StoreDep
-from app.api.models import RunInfo, Series
+from app.api.models import PERSON_PATTERN, RunInfo, Series
 from app.engine.params import ParameterError
+from app.engine.station import RunKind
 
 router = APIRouter(prefix="/api/runs", tags=["runs"], dependencies=[READ], responses=AUTH_RESPONSES)
 NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"description": "No such run, or it has no time series"}}
@@ -54,10 +55,15 @@ def _load(r: dict[str, Any]) -> tuple[list[str], np.ndarray]:
 
 
 @router.get("", response_model=list[RunInfo], summary="Runs, newest first")
-def list_runs(store: StoreDep, limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0, le=10**9),
-              kind: str | None = Query(None, max_length=40),
-              session_id: int | None = Query(None, ge=1, le=2**62)) -> list[RunInfo]:
-    return [_info(r) for r in store.runs(limit, offset, kind, session_id)]
+def list_runs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+              offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+              kind: Annotated[RunKind | None, Query(description="Only runs of this kind (a misspelt kind is "
+                                                                "refused, not answered with an empty list)")] = None,
+              session_id: Annotated[int | None, Query(ge=1, le=2**62)] = None,
+              person: Annotated[str | None, Query(max_length=64, pattern=PERSON_PATTERN,
+                                                  description="Only this person's runs (pseudonymous id, exact)")]
+              = None) -> list[RunInfo]:
+    return [_info(r) for r in store.runs(limit, offset, kind, session_id, person)]
 
 
 @router.get("/{run_id}", response_model=RunInfo, responses=NOT_FOUND, summary="One run with metrics and results")

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query
 
 from app.api.auth import AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import IdPath, StoreDep
-from app.api.models import Session, SessionIn
+from app.api.models import PERSON_PATTERN, Session, SessionIn
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[READ], responses=AUTH_RESPONSES)
 
@@ -25,7 +25,8 @@ def open_session(body: SessionIn, store: StoreDep) -> Session:
 
 
 @router.get("", response_model=list[Session], summary="Sessions, newest first")
-def list_sessions(store: StoreDep, person: str | None = Query(None, max_length=64)) -> list[Session]:
+def list_sessions(store: StoreDep, person: Annotated[str | None, Query(max_length=64, pattern=PERSON_PATTERN)] = None
+                  ) -> list[Session]:
     return [_session(store, r) for r in store.sessions(person)]
 
 
