@@ -28,7 +28,7 @@ def _solve_ivp_workout(params: PlantParams, duration: float, rate_hz: float = 20
     cp, fr_est, fz = ControllerConfig(controller="fuzzy").pack()
     x = pl.initial_state(params, 0.0, 3.0, 3.0)
     dt = 1.0 / rate_hz
-    sc = sn.build_sensor_const(params, dt)
+    sc = sn.build_sensor_const(params)
     st_s = np.zeros(sn.NS)
     st_c = np.zeros(cpl.NSTATE)
     meas = np.empty(sn.NM)

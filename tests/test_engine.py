@@ -285,3 +285,46 @@ def test_the_warm_up_runs_its_parts_and_refuses_an_unknown_one(capsys: pytest.Ca
     assert set(warm(["replay"])) == {"replay"} and set(PARTS) == {"sim", "replay"}
     assert main(["sim"]) == 0 and "compiled: sim" in capsys.readouterr().out
     assert main(["all"]) == 2 and "no warm-up part all; known: sim, replay" in capsys.readouterr().err
+
+
+class _ManualClock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def now(self) -> float:
+        return self.t
+
+
+def test_a_late_sample_reports_the_speed_over_the_time_that_passed() -> None:
+    """A stalled loop's next sample saw the vane move for 60 ms, not one 5 ms period: the speed
+    divides by what passed (it divided by the period, which reported a 65 ms stall's 0.5 rad/s as
+    3.6 rad/s on the paced station, and the controllers acted on that)."""
+    clock = _ManualClock()
+    rig = SimulatedRig(clock, period=0.005)
+    rig.set_program(HumanProgram.move(0.0, 1.0, 0.0, speed=0.5))
+    rig.activate()
+    rig.write(SAFE_COMMAND)
+    m = rig.read()
+    while clock.t < 1.5:  # on time, into the middle of the move (peak 0.5 rad/s)
+        clock.t += 0.005
+        m = rig.read()
+    clock.t += 0.060
+    late = rig.read()
+    mean = (late.theta - m.theta) / (late.t - m.t)  # the encoder's own mean over the gap
+    assert late.t - m.t == pytest.approx(0.060)
+    assert 0.35 < mean < 0.65
+    # 60 ms is 9 time constants of the 25 Hz filter: what is left is the mean over the gap
+    assert late.omega == pytest.approx(mean, rel=0.02), (late.omega, mean)
+
+
+def test_the_hardware_speed_estimator_divides_by_the_time_between_samples() -> None:
+    from app.engine.hardware.config import SpeedEstimator
+
+    est, per = SpeedEstimator(25.0, 0.005), SpeedEstimator(25.0, 0.005)
+    t = np.arange(0.0, 0.5, 0.005)
+    for ti in t:  # 0.4 rad/s, on time: the same with or without the samples' times
+        assert est.update(0.4 * ti, float(ti)) == pytest.approx(per.update(0.4 * ti), abs=1e-12)
+    assert est.update(0.4 * (t[-1] + 0.065), float(t[-1] + 0.065)) == pytest.approx(0.4, rel=1e-3)
+    assert per.update(0.4 * (t[-1] + 0.065)) > 7 * 0.4  # a period's step: 13 × the speed, half of it filtered
+    est.reset()
+    assert est.update(1.0, 2.0) == 0.0 and est.update(1.0, 2.0) == 0.0  # a repeated time: the period, no ÷0

@@ -51,7 +51,8 @@ class Simulator:
         self.cmd = np.array([0.0, 0.0, 5.0, 5.0, 0.0, 0.0])
         self.out = np.zeros(pl.NO)
         self._sensor_state = np.zeros(sn.NS)
-        self._sc_cache: dict[float, Any] = {}
+        self._sc: Any = None
+        self._sc_params: PlantParams | None = None
         self._noise = np.empty((0, 4))
         self._noise_i = 0
         self._meas = np.empty(sn.NM)
@@ -86,11 +87,18 @@ class Simulator:
         """Advance to time ``t`` [s] (no-op if already past it)."""
         self.advance(t - self.t)
 
+    def _sensor_const(self) -> Any:
+        if self._sc is None or self._sc_params is not self.params:
+            self._sc, self._sc_params = sn.build_sensor_const(self.params), self.params
+        return self._sc
+
     def measure(self, dt: float) -> np.ndarray:
-        """Sample the sensors (measurement vector, see :mod:`sensors`)."""
-        sc = self._sc_cache.get(dt)
-        if sc is None:
-            sc = self._sc_cache[dt] = sn.build_sensor_const(self.params, dt)
+        """Sample the sensors (measurement vector, see :mod:`sensors`).
+
+        Args:
+            dt: Time since the previous sample [s] (the speed estimate's step).
+        """
+        sc = self._sensor_const()
         pa, pb = pl.chamber_pressures(self.x, self.kernel)
         ti = self.true_interaction()
         m = np.empty(sn.NM)
@@ -105,14 +113,23 @@ class Simulator:
         Same result as :meth:`advance_to` then :meth:`measure` (the noise comes
         from the same generator, drawn in blocks); this is the per-period path
         of the simulated backend, where call overhead dominates.
+
+        Args:
+            t: Time to advance to [s].
+            dt: The sampling period [s]. The plant moves in whole steps, so the
+                time that passed since the previous sample is n·h; the speed
+                estimate divides by that when it differs from ``dt`` by half a
+                step or more (a late tick), and by ``dt`` itself otherwise (the
+                same number, without n·h's rounding).
         """
-        sc = self._sc_cache.get(dt)
-        if sc is None:
-            sc = self._sc_cache[dt] = sn.build_sensor_const(self.params, dt)
+        sc = self._sensor_const()
         if self._noise_i >= self._noise.shape[0]:
             self._noise = self.rng.standard_normal((1024, 4))
             self._noise_i = 0
-        n = max(0, int(round((t - self.t) / self.kernel.h)))
+        h = self.kernel.h
+        n = max(0, int(round((t - self.t) / h)))
+        if n > 0 and abs(n * h - dt) >= 0.5 * h:
+            dt = n * h
         args = (float(self.t), self.x, self.cmd, self.kernel, n, self.program.t, self.program.pos, self.out, sc,
                 self._noise[self._noise_i], self._sensor_state, float(dt), self._meas)
         fn = self._am_fn
@@ -290,7 +307,7 @@ def run_workout(
     dist = np.zeros((n, 2)) if disturbance_bar is None else np.asarray(disturbance_bar, dtype=np.float64) * BAR
     log = np.empty((n, len(LOG_COLUMNS)))
     truth = np.empty((n, len(TRUTH_COLUMNS)))
-    sc = sn.build_sensor_const(params, dt)
+    sc = sn.build_sensor_const(params)
     _closed_loop(x, k, sc, cp, fr_est, fz, program.t, program.pos, n, n_sub, dt, noise, dist, log, truth)
     meta = {
         "rig": params.rig, "sample_rate_hz": rate_hz, "p_atm_bar": params.p_atm / BAR,

@@ -401,30 +401,44 @@ class SpeedEstimator:
     """Speed from a quantised angle: backward difference through a first-order low-pass.
 
     The same estimator as the simulator's sensors (``physics/sensors.py``),
-    so a real backend reports speed the way the simulated one does.
+    so a real backend reports speed the way the simulated one does. Given the
+    samples' times, both divide by the time that passed between them, not by
+    the period: after a late sample (a stalled loop, a slow network round
+    trip) the angle moved for longer, and dividing by the period reported a
+    65 ms stall's 0.5 rad/s as 3.6 rad/s.
 
     Args:
         cutoff_hz: Low-pass cut-off [Hz].
-        dt: Sampling period [s].
+        dt: Sampling period [s]: the step between samples given without a
+            time (a board's hardware-timed samples), or with one that does not
+            advance.
     """
 
     def __init__(self, cutoff_hz: float, dt: float) -> None:
-        self.alpha = 1.0 - math.exp(-2.0 * math.pi * cutoff_hz * dt)
+        self.wc = 2.0 * math.pi * cutoff_hz
+        self.alpha = 1.0 - math.exp(-self.wc * dt)
         self.dt = dt
         self._prev: float | None = None
+        self._t_prev = math.nan
         self._w = 0.0
 
     def reset(self) -> None:
         """Forget the history (after a gap in the samples)."""
         self._prev = None
+        self._t_prev = math.nan
         self._w = 0.0
 
-    def update(self, theta: float) -> float:
-        """Feed one angle sample [rad]; returns the speed [rad/s]."""
+    def update(self, theta: float, t: float | None = None) -> float:
+        """Feed one angle sample [rad] taken at ``t`` [s] (None: one period after the last); returns [rad/s]."""
+        t_prev, self._t_prev = self._t_prev, (math.nan if t is None else t)
         if self._prev is None:
             self._prev = theta
             return 0.0
-        raw = (theta - self._prev) / self.dt
-        self._w += self.alpha * (raw - self._w)
+        dt, alpha = self.dt, self.alpha
+        if t is not None and t - t_prev > 0.0:  # NaN (no earlier time) compares false
+            dt = t - t_prev
+            alpha = 1.0 - math.exp(-self.wc * dt)
+        raw = (theta - self._prev) / dt
+        self._w += alpha * (raw - self._w)
         self._prev = theta
         return self._w

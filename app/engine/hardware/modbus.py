@@ -171,7 +171,7 @@ class ModbusRig(HardwareInterface):
         theta = enc.to_position(join32(regs[eaddr - lo], regs[eaddr - lo + 1]), self.rig)
         return Measurement(t_sample, ins.p_a.to_physical(volts(ins.p_a.channel)),
                            ins.p_b.to_physical(volts(ins.p_b.channel)), ins.p_s.to_physical(volts(ins.p_s.channel)),
-                           theta, self.speed.update(theta), ins.torque.to_physical(volts(ins.torque.channel)))
+                           theta, self.speed.update(theta, t_sample), ins.torque.to_physical(volts(ins.torque.channel)))
 
     def write(self, command: Command) -> Command:
         """Clip to each output's range and write the four outputs in one request."""

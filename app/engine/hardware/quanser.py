@@ -168,10 +168,14 @@ class QuanserRig(HardwareInterface):
             else:
                 self.card.read(self._ai, len(self._ai), self._enc, 1, None, 0, None, 0, self._volts, self._counts,
                                None, None)
+            timed = self._task is not None
         ins, v = self.config.inputs, self._volts
         theta = self.config.encoder.to_position(int(self._counts[0]), self.rig)
-        return Measurement(self.clock.now(), ins.p_a.to_physical(v[0]), ins.p_b.to_physical(v[1]),
-                           ins.p_s.to_physical(v[2]), theta, self.speed.update(theta), ins.torque.to_physical(v[3]))
+        t = self.clock.now()
+        # the reader task's samples are one period apart on the board's clock, however late they are read
+        w = self.speed.update(theta, None if timed else t)
+        return Measurement(t, ins.p_a.to_physical(v[0]), ins.p_b.to_physical(v[1]),
+                           ins.p_s.to_physical(v[2]), theta, w, ins.torque.to_physical(v[3]))
 
     def _write_raw(self, c: Command) -> None:
         self._out[0], self._out[1], self._out[2], self._out[3] = c.z_a, c.z_b, c.u_a, c.u_b
