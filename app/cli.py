@@ -296,7 +296,9 @@ def _serve(args: argparse.Namespace) -> int:
     from app.engine.params import validation_reasons
 
     try:
-        extra = {"hardware": args.hardware} if args.hardware else {}
+        # a flag given wins over its CWRR_* environment variable; one not given leaves that in force
+        extra = {k: v for k, v in (("hardware", args.hardware), ("data_dir", args.data_dir),
+                                   ("viser_public_url", args.viser_public_url)) if v}
         settings = Settings(host=args.host, port=args.port, viser_port=args.viser_port, **extra)
     except ValidationError as exc:
         raise ValueError(validation_reasons(exc, "settings")) from None
@@ -463,6 +465,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     v.add_argument("--port", type=int, default=8000)
     v.add_argument("--viser-port", type=int, default=8080)
     v.add_argument("--hardware", default="", help="YAML hardware configuration (default: the simulator)")
+    v.add_argument("--data-dir", default="", help="where run logs and the SQLite store live (default: "
+                   "$CWRR_DATA_DIR, else ./data)")
+    v.add_argument("--viser-public-url", default="", help="where browsers reach the live plots when that is not "
+                   "this host's --viser-port, e.g. behind a port mapping (default: $CWRR_VISER_PUBLIC_URL)")
     v.set_defaults(fn=_serve)
     mp = sub.add_parser("modbus-plant", help="serve the simulated rig over Modbus TCP (hardware-in-the-loop)")
     mp.add_argument("--host", default="127.0.0.1")

@@ -86,7 +86,7 @@ class ServedStation:
     process (a browser driver, the test itself) shares its interpreter lock.
 
     Args:
-        data_dir: The station's data folder (``CWRR_DATA_DIR``); its log goes there too.
+        data_dir: The station's data folder (``--data-dir``); its log goes there too.
         viser_port: The viser port (0: viser off).
         **env: Further settings as environment variables (``CWRR_...``).
     """
@@ -102,14 +102,15 @@ class ServedStation:
 
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        full = dict(os.environ, CWRR_DATA_DIR=str(data_dir), PYTHONPATH=str(self.ROOT))
-        for k in ("CWRR_ADMIN_TOKEN", "CWRR_THERAPIST_TOKEN"):
+        full = dict(os.environ, PYTHONPATH=str(self.ROOT))
+        for k in ("CWRR_ADMIN_TOKEN", "CWRR_THERAPIST_TOKEN", "CWRR_DATA_DIR"):
             full.pop(k, None)
         full.update(env)
         data_dir.mkdir(parents=True, exist_ok=True)
         self.log = open(data_dir / f"server-{self.port}.log", "wb")
         self.proc = subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", str(self.port),
-                                      "--viser-port", str(viser_port)], cwd=self.ROOT, env=full,
+                                      "--viser-port", str(viser_port), "--data-dir", str(data_dir)],
+                                     cwd=self.ROOT, env=full,
                                      stdout=self.log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + 180
         while True:

@@ -83,6 +83,12 @@ def test_cwrr_serve_on_all_interfaces_without_a_token_exits_with_the_reason(
     assert "without authentication" in err and "CWRR_ADMIN_TOKEN" in err
 
 
+def test_cwrr_serve_refuses_a_bad_public_url_flag_with_the_reason(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["serve", "--port", "1", "--viser-public-url", "ftp://station:9080"]) == 2
+    err = capsys.readouterr().err
+    assert "viser_public_url" in err and "http://host:port" in err
+
+
 def test_tokens_come_from_the_environment_and_never_show_in_repr(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("CWRR_ADMIN_TOKEN", ADMIN)
     s = Settings(host="0.0.0.0")
