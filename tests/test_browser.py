@@ -409,6 +409,19 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
         rep = json.loads(urllib.request.urlopen(f"{base}/api/runs/{json.loads(r.read())[0]['id']}",
                                                 timeout=10).read())["result"]
     assert rep["alternatives"] == [] or rep["verdict"]["effects"] == ["sensor_bias"], rep["verdict"]
+    if not rep["verdict"]["effects"]:  # which "no significant effect" it is: nothing above the noise, or a gap
+        above = rep["baseline"]["gap"]["above_noise"]
+        expect(page.locator("#detail")).to_contain_text(
+            "No candidate closes what the baseline leaves. Gap left unexplained: 100 %" if above
+            else "The baseline is not significantly above the noise: E ")
+        quiet = json.loads(json.dumps(rep))
+        quiet["baseline"]["gap"] |= {"e": 0.0102, "e_floor": 0.01, "ci90": [-0.0003, 0.0006], "above_noise": False}
+        quiet["verdict"]["effects"], quiet["alternatives"] = [], []
+        page.evaluate("rep => show(rep)", quiet)
+        expect(page.locator("#detail")).to_contain_text(
+            "The baseline is not significantly above the noise: E 0.0102 against a floor of 0.0100 (90 % CI of "
+            "the difference -3.00e-4 … 6.00e-4); more or longer held-out logs would tell a small gap from none.")
+        expect(page.locator("#detail")).not_to_contain_text("Gap left unexplained")
     rep["verdict"] |= {"effects": ["sensor_bias"], "alternatives": ["friction_per_direction"]}
     rep["alternatives"] = [{"explanation": "friction_per_direction", "instead_of": "sensor_bias",
                             "description": "friction off per direction", "separate_by": "tare the sensors",

@@ -467,6 +467,29 @@ def test_a_diagnosis_without_an_effect_weighs_no_alternative() -> None:
     assert r["verdict"]["effects"] == [] and r["alternatives"] == [] and r["verdict"]["alternatives"] == []
 
 
+@pytest.mark.parametrize("ripple", [0.0, 0.3])
+def test_no_significant_effect_says_whether_anything_was_left_above_the_noise(ripple: float) -> None:
+    """Two different findings share the words "no significant effect": the baseline explains the logs
+    down to their noise, or it leaves a gap that no candidate closes. The report tells them apart by
+    a bootstrap of E_base − E_floor over the held-out units."""
+    rng = np.random.default_rng(7)
+    x = rng.uniform(-1.0, 1.0, 2000)
+    t = np.arange(x.size) * 0.01
+    exps = [Experiment(f"e{k}", t, {"x": x}, {"y": 2.0 * x + ripple * np.sin(3.0 * t) + rng.normal(0.0, 0.01, x.size)},
+                       {}) for k in range(2)]
+    r = diagnose(_Line(), exps[:1], exps[1:])
+    gap = r["baseline"]["gap"]
+    assert r["verdict"]["effects"] == [] and gap["ci90"][0] <= gap["e_minus_floor"] <= gap["ci90"][1]
+    if ripple == 0.0:  # the floor is the noise the family names (0.01), which this line has
+        assert not gap["above_noise"] and gap["ci90"][0] < 0.0 < gap["ci90"][1]
+        assert r["verdict"]["summary"].startswith("no significant effect: the baseline is not significantly above "
+                                                  "the noise")
+    else:
+        assert gap["above_noise"] and gap["e"] > 5.0 * gap["e_floor"]
+        assert r["verdict"]["summary"].startswith("no significant effect: no candidate explains what the baseline "
+                                                  "leaves")
+
+
 class _Decay(_Line):
     """y = exp(−t/τ): one smooth valley, for what a grid start's refinements do."""
 

@@ -441,6 +441,15 @@ def bootstrap_gc(base: Scores, with_: Scores, norm: _Norm, seed: int = 0) -> tup
     return float(np.percentile(gcs, 5)), float(np.percentile(gcs, 95))
 
 
+def bootstrap_gap(base: Scores, norm: _Norm, seed: int = 2) -> tuple[float, float]:
+    """5 % and 95 % points of E_base − E_floor over resampled held-out units: is there a gap at all?"""
+    rng = np.random.default_rng(seed)
+    n = base.sse.shape[0]
+    ef = float((norm.floor / norm.spread).mean())
+    gaps = [_e(base, norm, np.asarray(rng.integers(0, n, n)))[0] - ef for _ in range(N_BOOT)]
+    return float(np.percentile(gaps, 5)), float(np.percentile(gaps, 95))
+
+
 def bootstrap_gc_difference(base: Scores, a: Scores, b: Scores, norm: _Norm, seed: int = 1) -> tuple[float, float]:
     """5 % and 95 % points of GC(a) − GC(b) on the same resampled held-out units (paired)."""
     rng = np.random.default_rng(seed)
@@ -721,14 +730,20 @@ def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, 
     return out, verdict_model
 
 
-def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]]) -> str:
+def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap: dict[str, Any]) -> str:
     """The verdict in one line."""
     if selected:
         out = " + ".join(c.effect for c in selected)
     elif any(a["dropped"] for a in alternatives):
         out = "no significant effect"
+    elif not gap["above_noise"]:
+        lo, hi = gap["ci90"]
+        return (f"no significant effect: the baseline is not significantly above the noise (E {gap['e']:.3g} "
+                f"against a floor of {gap['e_floor']:.3g}; 90 % CI of the difference {lo:.2g} … {hi:.2g})")
     else:
-        return "no significant effect: the baseline is within the noise or no candidate explains what remains"
+        return (f"no significant effect: no candidate explains what the baseline leaves (E {gap['e']:.3g}, "
+                f"{gap['e'] / gap['e_floor']:.3g} × the noise floor)" if gap["e_floor"] > 0.0 else
+                f"no significant effect: no candidate explains what the baseline leaves (E {gap['e']:.3g})")
     for a in alternatives:
         if a["dropped"]:
             out += (f"; {a['instead_of']} closed the gap, but {a['explanation']} ({a['description']}) closes more "
@@ -815,6 +830,11 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     base_sc = score(family, held, base, blocks)
     e_base, nr_base = _e(base_sc, norm)
     e_floor = float((floor / spread).mean())
+    # "no significant effect" means one of two things, and the report says which: nothing above the
+    # noise to explain, or a gap no candidate closes
+    g_lo, g_hi = bootstrap_gap(base_sc, norm)
+    gap = {"e": e_base, "e_floor": e_floor, "e_minus_floor": e_base - e_floor, "ci90": [g_lo, g_hi],
+           "above_noise": g_lo > 0.0}
 
     singles = [_evaluate(family, calib, held, base, base_sc, (c,), norm, blocks, scales, stop) for c in cands]
     singles.sort(key=_rank_key, reverse=True)
@@ -883,7 +903,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                         "flat_channels": {getattr(e, "name", "?"): flat for e in (*calib_exps, *held_exps)
                                           if isinstance(e, Experiment) and (flat := flat_channels(e))}},
         "baseline": {"nrmse": dict(zip(chans, map(float, nr_base), strict=True)), "e": e_base,
-                     "identifiability": base.identifiability()},
+                     "identifiability": base.identifiability(), "gap": gap},
         "noise_floor": {"nrmse": dict(zip(chans, map(float, floor / spread), strict=True)), "e": e_floor},
         "where": where(family, held, base),
         # an effect taken out of the verdict for an alternative keeps its single fit's significance
@@ -896,7 +916,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                     "separating_experiments": separate,
                     "alternatives": [a["explanation"] for a in alternatives
                                      if a["confusable"] or a["better"] or a["also"]],
-                    "summary": _summary(selected, alternatives)},
+                    "summary": _summary(selected, alternatives, gap)},
         "how_far": {"before": dict(zip(chans, map(float, nr_base), strict=True)),
                     "after": dict(zip(chans, map(float, nr_final), strict=True)),
                     "model": model, "e_before": e_base, "e_after": e_final, "e_floor": e_floor,
