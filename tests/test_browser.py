@@ -164,6 +164,12 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     expect(page.locator("#hist-msg")).to_have_text("runs 1–1 of P-007")
     expect(page.locator("#runs tbody tr").first).to_contain_text("P-007")
     expect(page.locator("#hist-older")).to_be_disabled()
+    # a run picked in the history shows its result where the last one shows, fetched from the store
+    page.evaluate("document.getElementById('last').textContent = ''")
+    page.locator("#runs tbody tr").first.locator("td").nth(2).click()
+    expect(page.locator("#last")).to_contain_text("Exercise ")
+    expect(page.locator("#runs tbody tr").first).to_have_class("shown")
+    assert float(page.locator("#metrics tr").first.locator("td").nth(1).inner_text()) == pytest.approx(mae, rel=1e-3)
 
     # issue 7: the emergency stop is always there and always enabled; it latches until cleared
     estop = page.locator("#estop")
