@@ -117,3 +117,31 @@ def test_stores_opened_at_once_on_one_database_all_come_up(url: str) -> None:
     assert all(s.run(rid) is not None for s in stores)
     for s in stores:
         s.close()
+
+
+def test_the_radar_compares_a_run_with_like_runs_only(url: str) -> None:
+    """The viser radar sets a workout beside the latest complete run of each other controller for the
+    same person, scenario and target: another person's arm, another target, or a run stopped half way
+    (scored over what it reached) would make the controllers differ for reasons of their own."""
+    from app.api.liveplots import latest_per_controller
+
+    store = Store(url)  # on PostgreSQL too where a server runs: the person filter is SQL
+
+    def run(controller: str, person: str, mae: float, status: str = "complete", scenario: str = "SC-1",
+            target: float = 1.2) -> int:
+        rid = store.run_started("workout", {"scenario": scenario, "controller": controller, "target_nm": target,
+                                            "person": person}, "")
+        store.run_finished(rid, status, {"mae": mae}, None)
+        return rid
+
+    run("pid", "P-1", 0.20)
+    run("default", "P-1", 0.30)
+    run("fuzzy", "P-2", 0.11)  # another person
+    run("default", "P-1", 0.31, status="stopped")  # later, but cut short
+    run("default", "P-1", 0.32, target=0.6)  # another target
+    run("pid", "P-1", 0.21, scenario="SC-2")  # another scenario
+    ref = run("fuzzy", "P-1", 0.10, status="stopped")  # the run shown is shown whatever its ending
+    got = latest_per_controller(store, ref)
+    assert got == {"fuzzy": {"mae": 0.10}, "default": {"mae": 0.30}, "pid": {"mae": 0.20}}
+    assert latest_per_controller(store, run("pid", "", 0.5)) == {"pid": {"mae": 0.5}}  # nobody named: no one else
+    assert latest_per_controller(store, 999) == {}

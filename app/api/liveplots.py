@@ -87,7 +87,8 @@ class LivePlots:
         # beside a running loop after the first run (70 000 objects every full collection then
         # scanned, ≈ 50 ms with the lock held)
         self.h_radar = gui.add_image(radar_image({"pid": dict.fromkeys(METRICS, 1.0)}),
-                                     label="Metrics radar (latest run per controller)", visible=False)
+                                     label="Metrics radar (this run, and each other controller's latest complete run "
+                                           "for the same person, scenario and target)", visible=False)
         scene = self.server.scene
         scene.add_frame("/rig", show_axes=False)
         scene.add_box("/rig/base", color=(120, 120, 130), dimensions=(0.12, 0.12, 0.06), position=(0.0, 0.0, -0.05))
@@ -171,17 +172,35 @@ class LivePlots:
     def _latest_per_controller(self, run_id: Any) -> dict[str, dict[str, float]]:
         if self.store is None or run_id is None:
             return {}
-        ref = self.store.run(int(run_id))
-        if ref is None or not ref.get("metrics"):
-            return {}
-        sc, tg = ref["spec"].get("scenario"), ref["spec"].get("target_nm")
-        out: dict[str, dict[str, float]] = {}
-        for r in self.store.runs(200, 0, "workout"):
-            s = r["spec"] or {}
-            if r.get("metrics") and s.get("scenario") == sc and s.get("target_nm") == tg \
-                    and s.get("controller") not in out:
-                out[s["controller"]] = r["metrics"]
-        return out
+        return latest_per_controller(self.store, int(run_id))
+
+
+def latest_per_controller(store: Any, run_id: int) -> dict[str, dict[str, float]]:
+    """The six metrics of a workout and of the latest run of each other controller to compare it with.
+
+    Only like with like: the same person (their arms, not the controllers, would differ otherwise),
+    scenario and target, and runs that went to their end (a stopped run is scored over the part it
+    reached). The run itself is shown whatever its ending, as the panel beside the radar shows it.
+
+    Args:
+        store: The run store.
+        run_id: The workout to compare.
+
+    Returns:
+        Controller → metrics; empty when the run has no metrics.
+    """
+    ref = store.run(run_id)
+    if ref is None or not ref.get("metrics"):
+        return {}
+    spec = ref["spec"] or {}
+    sc, tg = spec.get("scenario"), spec.get("target_nm")
+    out: dict[str, dict[str, float]] = {str(spec.get("controller")): ref["metrics"]}
+    for r in store.runs(200, 0, "workout", person=ref.get("person") or ""):
+        s = r["spec"] or {}
+        if r["status"] == "complete" and r.get("metrics") and s.get("scenario") == sc and s.get("target_nm") == tg \
+                and s.get("controller") not in out:
+            out[s["controller"]] = r["metrics"]
+    return out
 
 
 def radar_image(values: dict[str, dict[str, float]]) -> np.ndarray:
@@ -189,7 +208,7 @@ def radar_image(values: dict[str, dict[str, float]]) -> np.ndarray:
     from app.thesis_bench import _plt, radar_figure
 
     plt = _plt()
-    fig = radar_figure("Six metrics, latest run per controller", values)
+    fig = radar_figure("Six metrics: this run and the latest of each other controller", values)
     fig.canvas.draw()
     img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
     plt.close(fig)
