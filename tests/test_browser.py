@@ -122,6 +122,13 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     page.select_option("#controller", "pid")
     page.fill("#target", "1.2")
     page.fill("#person", "P-007")
+    page.locator("#person").dispatch_event("change")
+    # a therapy session for the person, which the run is stored under
+    page.fill("#session-notes", "left arm, week 3")
+    page.click("#new-session")
+    expect(page.locator("#session-msg")).to_contain_text("opened for P-007")
+    expect(page.locator("#session option:checked")).to_contain_text("left arm, week 3 (0 runs)")
+    session_id = int(page.locator("#session").input_value())
     page.select_option("#workout-set", str(shape_id))
     t0 = time.monotonic()
     page.click("#start")
@@ -143,6 +150,10 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     assert 0.0 < mae < 0.5, mae  # scored over the part of the window reached (live SC-1 PID: ≈ 0.13 N·m)
     row = page.locator("#runs tbody tr").first
     expect(row).to_contain_text("P-007")
+    run_id = int(row.get_attribute("data-run") or 0)
+    with urllib.request.urlopen(f"{base}/api/sessions/{session_id}", timeout=10) as r:
+        assert json.loads(r.read())["runs"] == [run_id]
+    expect(page.locator("#session option:checked")).to_contain_text("(1 run)")
     page.screenshot(path=str(SHOTS / "3-metrics-and-history.png"), full_page=True)
 
     with page.expect_download() as dl:
