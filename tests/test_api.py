@@ -458,3 +458,16 @@ def test_the_pid_autotuner_runs_on_the_rotary_rig_and_reports_beside_the_thesis(
     assert set(res["gains_fields"]) == {"kp_b", "ki_b", "kd_b"}
     assert res["thesis"]["thesis Eq 3.26"] == {"kp": 0.55, "ki": 2.042, "kd": 0.0107}  # Eq 3.26
     assert len(res["frf"]["w_rad_s"]) == 5 and min(res["frf"]["coherence"]) > 0.9
+
+
+def test_the_dashboard_history_names_every_kind_of_run() -> None:
+    """A kind added to ``station.RunKind`` needs words on the history (it would show its code name)."""
+    import re
+
+    from app.engine.station import RUN_KINDS
+
+    html = (Path(__file__).resolve().parents[1] / "app" / "static" / "index.html").read_text(encoding="utf-8")
+    block = re.search(r"const KINDS = \{(.*?)\};", html, re.S)
+    assert block is not None
+    labelled = set(re.findall(r"(\w+): [`']", block.group(1)))
+    assert labelled | {"workout"} == set(RUN_KINDS), sorted(set(RUN_KINDS) ^ (labelled | {"workout"}))
