@@ -175,6 +175,22 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     expect(page.locator("#hist-msg")).to_have_text("runs 1–1 of P-007")
     expect(page.locator("#runs tbody tr").first).to_contain_text("P-007")
     expect(page.locator("#hist-older")).to_be_disabled()
+    # the person's progress: complete exercises only (this one was stopped), then three stored ones as the
+    # store would answer them (served by the page's network layer, so the drawing is what is tested)
+    expect(page.locator("#progress-chart")).to_be_hidden()
+    fake = [{"id": 9 - k, "kind": "workout", "status": "complete", "started": 1.8e9 - 86400 * k, "ended": None,
+             "spec": {"scenario": sc, "controller": "fuzzy", "target_nm": 1.2}, "metrics": {"mae": mae},
+             "result": None, "person": "P-007", "notes": "", "session_id": None, "has_series": False}
+            for k, (sc, mae) in enumerate((("SC-1", 0.06), ("SC-2", 0.09), ("SC-1", 0.12)))]
+    page.route("**/api/runs?kind=workout*", lambda route: route.fulfill(json=fake))
+    page.locator("#hist-person").dispatch_event("change")
+    expect(page.locator("#progress-chart")).to_contain_text("Progress of P-007")
+    expect(page.locator("#progress-chart circle")).to_have_count(3)
+    titles = page.locator("#progress-chart circle title").all_text_contents()
+    assert titles[0].startswith("run 7,") and "SC-1 · fuzzy · 1.2 N·m — MAE 0.120 N·m" in titles[0], titles
+    assert titles[1].startswith("run 8,") and "SC-2" in titles[1] and titles[2].startswith("run 9,"), titles
+    expect(page.locator("#progress-chart")).to_contain_text("SC-2")  # the legend: a colour per scenario
+    page.unroute("**/api/runs?kind=workout*")
     # a run picked in the history shows its result where the last one shows, fetched from the store
     page.evaluate("document.getElementById('last').textContent = ''")
     page.locator("#runs tbody tr").first.locator("td").nth(2).click()
