@@ -345,6 +345,9 @@ def _diagnose(args: argparse.Namespace) -> int:
               + f"; E {r['how_far']['e_before']:.3g} → {r['how_far']['e_after']:.3g} "
               + (f"with {' + '.join(m)} " if (m := r["how_far"].get("model", v["effects"])) != v["effects"] else "")
               + f"(floor {r['how_far']['e_floor']:.3g})")
+        split = r["experiments"].get("split")
+        if split:
+            print(f"  held out: {', '.join(r['experiments']['held_out'])} ({split})")
         uneven = r["experiments"].get("irregular_sampling", {})
         if uneven:
             print("  sampled unevenly (replayed on their own clock, samples missing from a log not scored): "

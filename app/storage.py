@@ -67,7 +67,8 @@ CREATE TABLE IF NOT EXISTS sessions (
     id {pk},
     person TEXT NOT NULL,
     notes TEXT NOT NULL DEFAULT '',
-    created {real} NOT NULL
+    created {real} NOT NULL,
+    notes_edited {real}
 );
 """
 # PostgreSQL's REAL is 4 bytes: Unix times would lose whole seconds
@@ -126,6 +127,7 @@ class Store:
                     for stmt in filter(str.strip, ddl.split(";")):
                         self._db.execute(stmt)
                     self._db.execute("ALTER TABLE runs ADD COLUMN IF NOT EXISTS session_id BIGINT")
+                    self._db.execute("ALTER TABLE sessions ADD COLUMN IF NOT EXISTS notes_edited DOUBLE PRECISION")
                 finally:
                     self._db.execute("SELECT pg_advisory_unlock(hashtext('cwrr-store-schema'))")
         else:
@@ -142,6 +144,9 @@ class Store:
                 cols = {r[1] for r in self._db.execute("PRAGMA table_info(runs)").fetchall()}
                 if "session_id" not in cols:  # a store made before sessions were linked to runs
                     self._db.execute("ALTER TABLE runs ADD COLUMN session_id INTEGER")
+                cols = {r[1] for r in self._db.execute("PRAGMA table_info(sessions)").fetchall()}
+                if "notes_edited" not in cols:  # a store made before session notes could be edited
+                    self._db.execute("ALTER TABLE sessions ADD COLUMN notes_edited REAL")
         # a run still "running" at start-up was cut short by a crash or kill;
         # its log holds everything up to the last flush
         self._exec("UPDATE runs SET status='interrupted' WHERE status='running'")
@@ -235,6 +240,16 @@ class Store:
         """Open a session for a pseudonymous person id."""
         return self._insert("INSERT INTO sessions(person, notes, created) VALUES (?,?,?)",
                             (person, notes, time.time()))
+
+    def set_session_notes(self, session_id: int, notes: str) -> bool:
+        """Replace a session's notes (written after the exercises, as often as not); False if there is no such session.
+
+        When they were last changed is kept beside them (``notes_edited``), so
+        the record shows that they were written after the session opened.
+        """
+        rows = self._exec("UPDATE sessions SET notes=?, notes_edited=? WHERE id=? RETURNING id",
+                          (notes, time.time(), session_id))
+        return bool(rows)
 
     def session(self, session_id: int) -> dict[str, Any] | None:
         """One session, or None."""

@@ -18,6 +18,11 @@ in form (:data:`~app.engine.diagnosis.suite.STRUCTURAL`), each effect-free
 (seeds 300, 301, …) and each with one withheld effect
 (:data:`~app.engine.diagnosis.suite.STRUCTURAL_PAIRS`, seeds 310, 311, …).
 
+``--once coverage`` runs the protocol once per case (no repetition to hold
+out) and splits it as ``cwrr diagnose`` splits such logs
+(:func:`~app.engine.diagnosis.run.split_by_coverage`); ``--once last_third``
+by the rule that split them before (docs/diagnosis.md, "Logs run once").
+
 ``--per-direction`` runs the rigs whose static and Coulomb friction is off
 per direction on top of the grouped errors
 (:func:`~app.engine.diagnosis.suite.friction_per_direction`;
@@ -68,6 +73,9 @@ if __name__ == "__main__":
                     help="the rigs with friction off per direction instead (see above)")
     ap.add_argument("--errors", choices=list(ERRORS), default="grouped",
                     help="nominal parameters off by group (what the baseline recalibrates) or each by its own error")
+    ap.add_argument("--once", choices=["coverage", "last_third"],
+                    help="the protocol run once, split as cwrr diagnose splits such logs (coverage) or by the rule "
+                         "that split before (last_third)")
     a = ap.parse_args()
     results = []
     if a.per_direction:
@@ -86,7 +94,7 @@ if __name__ == "__main__":
         for seed in range(a.seeds):
             for eff in a.effects:
                 for mag in (0, 1):
-                    results.append(run_case(eff, mag, seed=a.seed0 + seed, errors=a.errors))
+                    results.append(run_case(eff, mag, seed=a.seed0 + seed, errors=a.errors, once=a.once))
         for seed in range(a.nulls):
-            results.append(run_case(None, seed=a.null_seed0 + seed, errors=a.errors))
+            results.append(run_case(None, seed=a.null_seed0 + seed, errors=a.errors, once=a.once))
     print(json.dumps(summarise(results), indent=1))

@@ -19,7 +19,8 @@ ADMIN = "adm-" + "a1b2c3d4e5f6a7b8c9d0"
 THERAPIST = "thr-" + "0f9e8d7c6b5a4f3e2d1c"
 PUBLIC = {("GET", "/api/health"), ("POST", "/api/engine/estop"), ("GET", "/api/auth")}
 THERAPIST_OK = {("POST", "/api/engine/connect"), ("POST", "/api/engine/disconnect"), ("POST", "/api/engine/start"),
-                ("POST", "/api/engine/stop"), ("POST", "/api/engine/clear"), ("POST", "/api/sessions")}
+                ("POST", "/api/engine/stop"), ("POST", "/api/engine/clear"), ("POST", "/api/sessions"),
+                ("PATCH", "/api/sessions/{session_id}")}
 
 
 def _bearer(token: str) -> dict[str, str]:
@@ -129,9 +130,9 @@ def test_a_therapist_runs_exercises_but_only_an_admin_identifies_tunes_and_store
         secured: TestClient) -> None:
     t, a = _bearer(THERAPIST), _bearer(ADMIN)
     for method, path in _api_routes(secured):
-        if method != "POST" or (method, path) in PUBLIC or path == "/api/forms/{rig}":
+        if method not in ("POST", "PATCH") or (method, path) in PUBLIC or path == "/api/forms/{rig}":
             continue
-        r = secured.post(_concrete(path), json={}, headers=t)
+        r = secured.request(method, _concrete(path), json={}, headers=t)
         if (method, path) in THERAPIST_OK:
             assert r.status_code != 403, (path, r.text)
         else:

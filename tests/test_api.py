@@ -199,6 +199,22 @@ def test_runs_are_listed_by_person_and_kind_and_a_misspelt_filter_is_refused(cli
     assert client.get("/api/sessions", params={"person": "P 007"}).status_code == 422
 
 
+def test_a_sessions_notes_are_written_after_the_exercises_and_bad_edits_change_nothing(client: TestClient) -> None:
+    sess = client.post("/api/sessions", json={"person": "P-012", "notes": "left arm"}).json()
+    assert sess["notes_edited"] is None
+    r = client.patch(f"/api/sessions/{sess['id']}", json={"notes": "left arm; tired after SC-2, stopped early"})
+    assert r.status_code == 200, r.text
+    got = r.json()
+    assert got["notes"] == "left arm; tired after SC-2, stopped early" and got["notes_edited"] >= got["created"]
+    assert client.get(f"/api/sessions/{sess['id']}").json()["notes"] == got["notes"]
+    for body in ({"notes": "x" * 2001}, {"notes": "y", "person": "P-013"}, {}):
+        bad = client.patch(f"/api/sessions/{sess['id']}", json=body)
+        assert bad.status_code == 422, (body, bad.text)
+    assert client.get(f"/api/sessions/{sess['id']}").json() == got  # nothing changed
+    missing = client.patch("/api/sessions/999999", json={"notes": "z"})
+    assert missing.status_code == 404 and "999999" in missing.json()["detail"]
+
+
 def test_stop_keeps_what_was_recorded(client: TestClient) -> None:
     client.post("/api/engine/connect")
     run_id = client.post("/api/engine/start", json={"scenario": "SC-4", "target_nm": 0.6}).json()["run_id"]

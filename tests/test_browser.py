@@ -146,6 +146,7 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     viser.close()
     page.bring_to_front()
     expect(page.locator("#state")).to_have_text("running")  # still exercising when STOP is pressed
+    page.fill("#session-notes", "left arm, week 3; tired towards the end")  # noted while exercising
 
     page.click("#stop")
     expect(page.locator("#state")).to_have_text("idle")
@@ -159,6 +160,13 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     with urllib.request.urlopen(f"{base}/api/sessions/{session_id}", timeout=10) as r:
         assert json.loads(r.read())["runs"] == [run_id]
     expect(page.locator("#session option:checked")).to_contain_text("(1 run)")
+    # the run's end recounted the session's runs without wiping the notes being typed; saved, they are stored
+    expect(page.locator("#session-notes")).to_have_value("left arm, week 3; tired towards the end")
+    page.click("#save-session-notes")
+    expect(page.locator("#session-msg")).to_contain_text(f"Notes of session {session_id} saved")
+    with urllib.request.urlopen(f"{base}/api/sessions/{session_id}", timeout=10) as r:
+        assert json.loads(r.read())["notes"] == "left arm, week 3; tired towards the end"
+    expect(page.locator("#session option:checked")).to_contain_text("tired towards")
     page.screenshot(path=str(SHOTS / "3-metrics-and-history.png"), full_page=True)
 
     with page.expect_download() as dl:

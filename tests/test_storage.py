@@ -60,6 +60,10 @@ def test_runs_sessions_and_parameter_sets_round_trip(url: str) -> None:
     assert s.param_set(ps) is not None and s.param_set(ps)["payload"] == {"kp_a": 0.7}  # type: ignore[index]
     assert [p["id"] for p in s.param_sets("gains")] == [ps] and s.param_sets("rotary") == []
     assert s.session(sid)["person"] == "P-007" and [x["id"] for x in s.sessions("P-007")] == [sid]  # type: ignore[index]
+    assert s.session(sid)["notes_edited"] is None  # type: ignore[index]
+    assert s.set_session_notes(sid, "left arm; tired after SC-2") and not s.set_session_notes(10**9, "x")
+    row = s.session(sid)
+    assert row is not None and row["notes"] == "left arm; tired after SC-2" and row["notes_edited"] >= row["created"]
     s.close()
 
 
@@ -76,7 +80,7 @@ def test_an_unreachable_postgresql_is_refused_without_leaking_the_password() -> 
     assert "s3cret" not in str(err.value) and "lab:***@127.0.0.1:1" in str(err.value)
 
 
-def test_a_store_made_before_sessions_gains_the_column(tmp_path: Path) -> None:
+def test_a_store_made_before_sessions_gains_the_columns(tmp_path: Path) -> None:
     import sqlite3
 
     path = tmp_path / "old.sqlite3"
@@ -85,10 +89,14 @@ def test_a_store_made_before_sessions_gains_the_column(tmp_path: Path) -> None:
                "started REAL NOT NULL, ended REAL, spec TEXT NOT NULL, metrics TEXT, result TEXT, "
                "log_csv TEXT NOT NULL, person TEXT NOT NULL DEFAULT '', notes TEXT NOT NULL DEFAULT '')")
     db.execute("INSERT INTO runs(kind,status,started,spec,log_csv) VALUES ('workout','complete',1.0,'{}','')")
+    db.execute("CREATE TABLE sessions (id INTEGER PRIMARY KEY AUTOINCREMENT, person TEXT NOT NULL, "
+               "notes TEXT NOT NULL DEFAULT '', created REAL NOT NULL)")
+    db.execute("INSERT INTO sessions(person, notes, created) VALUES ('P-001', 'left', 1.0)")
     db.commit()
     db.close()
     s = Store(f"sqlite:///{path}")
     assert s.run(1)["session_id"] is None  # type: ignore[index]
+    assert s.session(1)["notes_edited"] is None and s.set_session_notes(1, "left; edited")  # type: ignore[index]
 
 
 def test_stores_opened_at_once_on_one_database_all_come_up(url: str) -> None:

@@ -197,6 +197,18 @@ class SessionIn(BaseModel):
     notes: Notes = ""
 
 
+class SessionNotesIn(BaseModel):
+    """New notes for a session (they replace the old ones).
+
+    Attributes:
+        notes: Therapist's notes.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    notes: Notes
+
+
 class Session(BaseModel):
     """A therapy session.
 
@@ -205,6 +217,7 @@ class Session(BaseModel):
         person: Pseudonymous person id.
         notes: Notes.
         created: When [Unix s].
+        notes_edited: When the notes were last changed after the session opened [Unix s]; None: never.
         runs: Ids of the runs recorded in it, newest first.
     """
 
@@ -212,6 +225,7 @@ class Session(BaseModel):
     person: str
     notes: str
     created: float
+    notes_edited: float | None = None
     runs: list[int] = []
 
 

@@ -8,7 +8,7 @@ from fastapi import APIRouter, HTTPException, Query
 
 from app.api.auth import AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import IdPath, StoreDep
-from app.api.models import PERSON_PATTERN, Session, SessionIn
+from app.api.models import PERSON_PATTERN, Session, SessionIn, SessionNotesIn
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[READ], responses=AUTH_RESPONSES)
 
@@ -36,4 +36,14 @@ def get_session(session_id: IdPath, store: StoreDep) -> Session:
     row = store.session(session_id)
     if row is None:
         raise HTTPException(404, f"session {session_id} does not exist")
+    return _session(store, row)
+
+
+@router.patch("/{session_id}", dependencies=[THERAPIST], response_model=Session,
+              responses={404: {"description": "No such session"}}, summary="Replace a session's notes")
+def edit_notes(session_id: IdPath, body: SessionNotesIn, store: StoreDep) -> Session:
+    if not store.set_session_notes(session_id, body.notes):
+        raise HTTPException(404, f"session {session_id} does not exist")
+    row = store.session(session_id)
+    assert row is not None
     return _session(store, row)

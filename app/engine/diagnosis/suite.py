@@ -25,7 +25,7 @@ from app.engine.diagnosis.core import channel_spread, diagnose
 from app.engine.diagnosis.logs import Experiment
 from app.engine.diagnosis.protocol import run_protocol
 from app.engine.diagnosis.rotary import RotaryFamily
-from app.engine.diagnosis.run import PROTOCOL
+from app.engine.diagnosis.run import PROTOCOL, split_by_coverage
 from app.engine.params import (
     HeatTransferEffect,
     InertiaEffect,
@@ -233,7 +233,7 @@ def oracle_gap_closure(report: dict[str, Any], held: list[Experiment], x: dict[s
 
 def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float = 1.0,
              structural: str | None = None, errors: str = "grouped",
-             friction_asymmetry: float = 0.0) -> dict[str, Any]:
+             friction_asymmetry: float = 0.0, once: str | None = None) -> dict[str, Any]:
     """Generate one case's logs and diagnose them.
 
     Args:
@@ -246,6 +246,11 @@ def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float
         errors: A key of :data:`ERRORS`: how the nominal parameters are off.
         friction_asymmetry: The rig's static and Coulomb friction also off per
             direction by this much (:func:`friction_per_direction`; 0: not) [-].
+        once: Diagnose the first repetition alone, split as ``cwrr diagnose``
+            splits logs run once (``"coverage"``,
+            :func:`~app.engine.diagnosis.run.split_by_coverage`) or by the rule
+            it replaced (``"last_third"``); None: fit the first repetition,
+            score the second.
 
     Returns:
         ``effect``, ``magnitude``, ``rank`` of the true effect in the ranking
@@ -265,9 +270,17 @@ def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float
         rig = friction_per_direction(rig, friction_asymmetry)
     if effect is not None:
         rig = rig.with_effects(**{effect: MAGNITUDES[effect][magnitude]})
-    exps = run_protocol(rig, seed=seed, scale=scale)
-    calib = [e for e in exps if e.meta["repetition"] == 1]
-    held = [e for e in exps if e.meta["repetition"] == 2]
+    if once not in (None, "coverage", "last_third"):
+        raise ValueError(f"once = {once!r}: must be 'coverage' or 'last_third'")
+    exps = run_protocol(rig, seed=seed, scale=scale, repetitions=1 if once else 2)
+    if once == "coverage":
+        calib, held, _ = split_by_coverage(exps)
+    elif once == "last_third":
+        n_held = math.ceil(len(exps) / 3)
+        calib, held = exps[:-n_held], exps[-n_held:]
+    else:
+        calib = [e for e in exps if e.meta["repetition"] == 1]
+        held = [e for e in exps if e.meta["repetition"] == 2]
     t0 = time.perf_counter()
     rep = diagnose(RotaryFamily(), calib, held, protocol=PROTOCOL)
     secs = time.perf_counter() - t0
@@ -278,7 +291,8 @@ def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float
     gc = next((r["gap_closure"] for r in rep["ranking"] if r["effect"] == effect), None)
     oracle = oracle_gap_closure(rep, held, true_params(rig, effect), (effect,) if effect else ())
     return {"effect": effect, "magnitude": magnitude, "seed": seed, "structural": structural, "errors": errors,
-            "friction_asymmetry": friction_asymmetry, "rank": rank, "first": first, "verdict": found,
+            "friction_asymmetry": friction_asymmetry, "once": once, "held_out": [e.name for e in held],
+            "rank": rank, "first": first, "verdict": found,
             "confusable_with": rep["verdict"]["confusable_with"], "alternatives": rep["verdict"]["alternatives"],
             "gap_closure": gc, "oracle_gap_closure": oracle, "seconds": secs, "report": rep}
 
