@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from app.engine.control.interaction import HoldController, InteractionController
-from app.engine.hardware.base import SAFE_COMMAND, Command
+from app.engine.hardware.base import SAFE_COMMAND, Command, Measurement
 from app.engine.hardware.sim import SimulatedRig
 from app.engine.human import HumanProgram, isotonic
 from app.engine.loop import Engine, SimClock
@@ -315,6 +315,36 @@ def test_a_late_sample_reports_the_speed_over_the_time_that_passed() -> None:
     assert 0.35 < mean < 0.65
     # 60 ms is 9 time constants of the 25 Hz filter: what is left is the mean over the gap
     assert late.omega == pytest.approx(mean, rel=0.02), (late.omega, mean)
+
+
+@pytest.mark.parametrize("controller", ["pid", "fuzzy"])
+def test_a_late_sample_is_differentiated_and_integrated_over_the_time_that_passed(controller: str) -> None:
+    """The engine steps its controller with the period; a sample that came 40 ms after the one
+    before is stepped over 40 ms, as if that interval had been given, and a longer gap over ten
+    periods at most. Over the period, the derivative of 65 ms of pressure change was taken as if
+    it had happened in 5 ms, and the PRV command jumped 1.8 (PID) and 2.0 (fuzzy, whose gains read
+    the derivative) times as far."""
+    def z_a(times: list[float], dts: list[float], stamps: list[float] | None = None) -> list[float]:
+        c = InteractionController(controller=controller)
+        out = []
+        for t, dt, stamp in zip(times, dts, stamps or times, strict=True):
+            p = 3.0 + 0.3 * math.sin(2.0 * math.pi * t)  # chamber a swings ±0.3 bar at 1 Hz
+            out.append(c.step(Measurement(stamp, p, 3.0, 7.0, 0.0, 0.0, 0.0), dt).z_a)
+        return out
+
+    on_time = [0.005 * k for k in range(100)]
+    for gap, stepped in ((0.040, 0.040), (0.065, 0.050)):
+        times = [*on_time, on_time[-1] + gap]
+        engine = z_a(times, [0.005] * len(times))
+        # the same pressures stepped with the interval given explicitly (and stamped to match)
+        given = z_a(times, [0.005] * len(on_time) + [stepped], stamps=[*on_time, on_time[-1] + stepped])
+        assert engine[-1] == pytest.approx(given[-1], abs=1e-12), (gap, engine[-1], given[-1])
+    # a controller that could not tell (samples stamped one period apart) kicks
+    blind = z_a(times, [0.005] * len(times), stamps=[0.005 * k for k in range(len(times))])
+    assert abs(blind[-1] - blind[-2]) > 1.5 * abs(engine[-1] - engine[-2]), (blind[-2:], engine[-2:])
+    # and on time nothing changes: the same commands as stepping with the period alone
+    jitter = [t + 0.0004 * (-1) ** k for k, t in enumerate(on_time)]  # ±0.4 ms: within a quarter period
+    assert z_a(jitter, [0.005] * 100) == pytest.approx(z_a(jitter, [0.005] * 100, stamps=on_time), abs=1e-12)
 
 
 def test_the_hardware_speed_estimator_divides_by_the_time_between_samples() -> None:
