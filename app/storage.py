@@ -54,7 +54,8 @@ CREATE TABLE IF NOT EXISTS runs (
     log_csv TEXT NOT NULL,
     person TEXT NOT NULL DEFAULT '',
     notes TEXT NOT NULL DEFAULT '',
-    session_id {int}
+    session_id {int},
+    notes_edited {real}
 );
 CREATE TABLE IF NOT EXISTS param_sets (
     id {pk},
@@ -127,7 +128,8 @@ class Store:
                     for stmt in filter(str.strip, ddl.split(";")):
                         self._db.execute(stmt)
                     self._db.execute("ALTER TABLE runs ADD COLUMN IF NOT EXISTS session_id BIGINT")
-                    self._db.execute("ALTER TABLE sessions ADD COLUMN IF NOT EXISTS notes_edited DOUBLE PRECISION")
+                    for table in ("runs", "sessions"):
+                        self._db.execute(f"ALTER TABLE {table} ADD COLUMN IF NOT EXISTS notes_edited DOUBLE PRECISION")
                 finally:
                     self._db.execute("SELECT pg_advisory_unlock(hashtext('cwrr-store-schema'))")
         else:
@@ -144,9 +146,10 @@ class Store:
                 cols = {r[1] for r in self._db.execute("PRAGMA table_info(runs)").fetchall()}
                 if "session_id" not in cols:  # a store made before sessions were linked to runs
                     self._db.execute("ALTER TABLE runs ADD COLUMN session_id INTEGER")
-                cols = {r[1] for r in self._db.execute("PRAGMA table_info(sessions)").fetchall()}
-                if "notes_edited" not in cols:  # a store made before session notes could be edited
-                    self._db.execute("ALTER TABLE sessions ADD COLUMN notes_edited REAL")
+                for table in ("runs", "sessions"):  # a store made before notes could be edited
+                    cols = {r[1] for r in self._db.execute(f"PRAGMA table_info({table})").fetchall()}
+                    if "notes_edited" not in cols:
+                        self._db.execute(f"ALTER TABLE {table} ADD COLUMN notes_edited REAL")
         # a run still "running" at start-up was cut short by a crash or kill;
         # its log holds everything up to the last flush
         self._exec("UPDATE runs SET status='interrupted' WHERE status='running'")
@@ -205,6 +208,14 @@ class Store:
         q = "SELECT * FROM runs" + (" WHERE " + " AND ".join(where) if where else "") + \
             " ORDER BY id DESC LIMIT ? OFFSET ?"
         return [self._run(r) for r in self._exec(q, (*args, limit, offset))]
+
+    def set_run_notes(self, run_id: int, notes: str) -> bool:
+        """Replace a run's notes (an observation made after it); False if there is no such run.
+
+        When they were last changed is kept beside them (``notes_edited``).
+        """
+        return bool(self._exec("UPDATE runs SET notes=?, notes_edited=? WHERE id=? RETURNING id",
+                               (notes, time.time(), run_id)))
 
     def run(self, run_id: int) -> dict[str, Any] | None:
         """One run, or None."""

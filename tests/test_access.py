@@ -20,7 +20,7 @@ THERAPIST = "thr-" + "0f9e8d7c6b5a4f3e2d1c"
 PUBLIC = {("GET", "/api/health"), ("POST", "/api/engine/estop"), ("GET", "/api/auth")}
 THERAPIST_OK = {("POST", "/api/engine/connect"), ("POST", "/api/engine/disconnect"), ("POST", "/api/engine/start"),
                 ("POST", "/api/engine/stop"), ("POST", "/api/engine/clear"), ("POST", "/api/sessions"),
-                ("PATCH", "/api/sessions/{session_id}")}
+                ("PATCH", "/api/sessions/{session_id}"), ("PATCH", "/api/runs/{run_id}")}
 
 
 def _bearer(token: str) -> dict[str, str]:

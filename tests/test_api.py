@@ -199,7 +199,7 @@ def test_runs_are_listed_by_person_and_kind_and_a_misspelt_filter_is_refused(cli
     assert client.get("/api/sessions", params={"person": "P 007"}).status_code == 422
 
 
-def test_a_sessions_notes_are_written_after_the_exercises_and_bad_edits_change_nothing(client: TestClient) -> None:
+def test_session_and_run_notes_are_written_after_the_exercises_and_bad_edits_change_nothing(client: TestClient) -> None:
     sess = client.post("/api/sessions", json={"person": "P-012", "notes": "left arm"}).json()
     assert sess["notes_edited"] is None
     r = client.patch(f"/api/sessions/{sess['id']}", json={"notes": "left arm; tired after SC-2, stopped early"})
@@ -213,6 +213,20 @@ def test_a_sessions_notes_are_written_after_the_exercises_and_bad_edits_change_n
     assert client.get(f"/api/sessions/{sess['id']}").json() == got  # nothing changed
     missing = client.patch("/api/sessions/999999", json={"notes": "z"})
     assert missing.status_code == 404 and "999999" in missing.json()["detail"]
+    # a run's notes likewise; what it started with stays in its spec
+    client.post("/api/engine/connect")
+    run_id = client.post("/api/engine/start", json={"scenario": "SC-1", "target_nm": 0.6, "notes": "as usual",
+                                                    "session_id": sess["id"]}).json()["run_id"]
+    client.post("/api/engine/stop")
+    wait_engine(client, lambda s: s["state"] == "idle")
+    r = client.patch(f"/api/runs/{run_id}", json={"notes": "as usual; said the handle pulled at the end"})
+    assert r.status_code == 200, r.text
+    run = client.get(f"/api/runs/{run_id}").json()
+    assert run["notes"] == "as usual; said the handle pulled at the end" and run["spec"]["notes"] == "as usual"
+    assert run["notes_edited"] >= run["started"] and run["status"] == "stopped"
+    assert client.patch(f"/api/runs/{run_id}", json={"notes": 5}).status_code == 422
+    assert client.get(f"/api/runs/{run_id}").json() == run
+    assert client.patch("/api/runs/999999", json={"notes": "z"}).status_code == 404
 
 
 def test_stop_keeps_what_was_recorded(client: TestClient) -> None:

@@ -167,6 +167,13 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     with urllib.request.urlopen(f"{base}/api/sessions/{session_id}", timeout=10) as r:
         assert json.loads(r.read())["notes"] == "left arm, week 3; tired towards the end"
     expect(page.locator("#session option:checked")).to_contain_text("tired towards")
+    # and the run's own notes, under its result
+    expect(page.locator("#save-run-notes")).to_have_text(f"Save notes on run {run_id}")
+    page.fill("#run-notes", "stopped: asked for a break")
+    page.click("#save-run-notes")
+    expect(page.locator("#run-notes-msg")).to_have_text(f"Notes on run {run_id} saved.")
+    with urllib.request.urlopen(f"{base}/api/runs/{run_id}", timeout=10) as r:
+        assert json.loads(r.read())["notes"] == "stopped: asked for a break"
     page.screenshot(path=str(SHOTS / "3-metrics-and-history.png"), full_page=True)
 
     with page.expect_download() as dl:

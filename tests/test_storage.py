@@ -62,6 +62,9 @@ def test_runs_sessions_and_parameter_sets_round_trip(url: str) -> None:
     assert s.session(sid)["person"] == "P-007" and [x["id"] for x in s.sessions("P-007")] == [sid]  # type: ignore[index]
     assert s.session(sid)["notes_edited"] is None  # type: ignore[index]
     assert s.set_session_notes(sid, "left arm; tired after SC-2") and not s.set_session_notes(10**9, "x")
+    assert s.run(rid)["notes_edited"] is None  # type: ignore[index]
+    assert s.set_run_notes(rid, "said it pulled") and not s.set_run_notes(10**9, "")
+    assert s.run(rid)["notes"] == "said it pulled" and s.run(rid)["notes_edited"] > 0  # type: ignore[index]
     row = s.session(sid)
     assert row is not None and row["notes"] == "left arm; tired after SC-2" and row["notes_edited"] >= row["created"]
     s.close()
@@ -97,6 +100,7 @@ def test_a_store_made_before_sessions_gains_the_columns(tmp_path: Path) -> None:
     s = Store(f"sqlite:///{path}")
     assert s.run(1)["session_id"] is None  # type: ignore[index]
     assert s.session(1)["notes_edited"] is None and s.set_session_notes(1, "left; edited")  # type: ignore[index]
+    assert s.run(1)["notes_edited"] is None and s.set_run_notes(1, "edited")  # type: ignore[index]
 
 
 def test_stores_opened_at_once_on_one_database_all_come_up(url: str) -> None:

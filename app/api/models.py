@@ -197,8 +197,8 @@ class SessionIn(BaseModel):
     notes: Notes = ""
 
 
-class SessionNotesIn(BaseModel):
-    """New notes for a session (they replace the old ones).
+class NotesIn(BaseModel):
+    """New notes for a session or a run (they replace the old ones).
 
     Attributes:
         notes: Therapist's notes.
@@ -386,6 +386,7 @@ class RunInfo(BaseModel):
         result: Evaluation window or identified parameters.
         person: Pseudonymous person id.
         notes: Notes.
+        notes_edited: When the notes were last changed after the start [Unix s]; None: never.
         session_id: The therapy session it belongs to.
         has_series: Whether a time-series log exists.
     """
@@ -400,6 +401,7 @@ class RunInfo(BaseModel):
     result: dict[str, Any] | None
     person: str
     notes: str
+    notes_edited: float | None = None
     session_id: int | None = None
     has_series: bool
 

@@ -15,9 +15,9 @@ from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response
 from pydantic import BaseModel, Field
 
-from app.api.auth import ADMIN, AUTH_RESPONSES, READ
+from app.api.auth import ADMIN, AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import IdPath, StoreDep
-from app.api.models import PERSON_PATTERN, RunInfo, Series
+from app.api.models import PERSON_PATTERN, NotesIn, RunInfo, Series
 from app.engine.params import ParameterError
 from app.engine.station import RunKind
 
@@ -28,6 +28,7 @@ NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"description": "No such run,
 def _info(r: dict[str, Any]) -> RunInfo:
     return RunInfo(**{k: r[k] for k in ("id", "kind", "status", "started", "ended", "metrics", "result", "person",
                                         "notes", "session_id")}, spec=r["spec"] or {},
+                   notes_edited=r.get("notes_edited"),
                    has_series=bool(r["log_csv"]) and Path(r["log_csv"]).is_file())
 
 
@@ -68,6 +69,14 @@ def list_runs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100
 
 @router.get("/{run_id}", response_model=RunInfo, responses=NOT_FOUND, summary="One run with metrics and results")
 def run_detail(run_id: IdPath, store: StoreDep) -> RunInfo:
+    return _info(_get(store, run_id))
+
+
+@router.patch("/{run_id}", response_model=RunInfo, dependencies=[THERAPIST],
+              responses={404: {"description": "No such run"}}, summary="Replace a run's notes")
+def edit_notes(run_id: IdPath, body: NotesIn, store: StoreDep) -> RunInfo:
+    if not store.set_run_notes(run_id, body.notes):
+        raise HTTPException(404, f"run {run_id} does not exist")
     return _info(_get(store, run_id))
 
 

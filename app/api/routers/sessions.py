@@ -8,7 +8,7 @@ from fastapi import APIRouter, HTTPException, Query
 
 from app.api.auth import AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import IdPath, StoreDep
-from app.api.models import PERSON_PATTERN, Session, SessionIn, SessionNotesIn
+from app.api.models import PERSON_PATTERN, NotesIn, Session, SessionIn
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[READ], responses=AUTH_RESPONSES)
 
@@ -41,7 +41,7 @@ def get_session(session_id: IdPath, store: StoreDep) -> Session:
 
 @router.patch("/{session_id}", dependencies=[THERAPIST], response_model=Session,
               responses={404: {"description": "No such session"}}, summary="Replace a session's notes")
-def edit_notes(session_id: IdPath, body: SessionNotesIn, store: StoreDep) -> Session:
+def edit_notes(session_id: IdPath, body: NotesIn, store: StoreDep) -> Session:
     if not store.set_session_notes(session_id, body.notes):
         raise HTTPException(404, f"session {session_id} does not exist")
     row = store.session(session_id)
