@@ -142,6 +142,13 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     # captured from behind the dashboard; in front for a moment it draws what it has been sent
     viser.bring_to_front()
     viser.wait_for_timeout(700)
+    # the four charts hold the run and keep drawing it: their canvases change as samples arrive (the
+    # publisher sends nothing when no new sample came, so a frozen chart would read the same twice)
+    drawn = "() => [...document.querySelectorAll('.uplot canvas')].map(c => c.toDataURL())"
+    before = viser.evaluate(drawn)
+    viser.wait_for_timeout(600)
+    after = viser.evaluate(drawn)
+    assert len(before) == 4 and all(a != b for a, b in zip(before, after, strict=True)), len(before)
     viser.screenshot(path=str(SHOTS / "4-viser-live-plots.png"))
     viser.close()
     page.bring_to_front()
