@@ -464,6 +464,8 @@ def test_withheld_sensor_bias_through_the_cli(tmp_path: Path, capsys: pytest.Cap
     assert {w["channel"] for w in r["where"]} == {"p_a", "p_b", "p_s", "torque"}
     assert sorted(r["experiments"]["held_out"]) == sorted(f"{k}-2" for k in VISIBLE)
     assert r["experiments"]["split"] == "the last repetition of every experiment run more than once"
+    assert "motion" in r["experiments"]["excites"]["friction_sweep-1"]
+    assert "shut after a fast fill or vent" in r["experiments"]["excites"]["fill_shut-2"]
     assert "held out: " in capsys.readouterr().out  # which logs scored the verdict, and why those
 
 

@@ -91,6 +91,8 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     calib, held, why = _split_station(exps, held_out)
     report = diagnose(RotaryFamily(), calib, held, protocol=PROTOCOL, stop=stop)
     report["experiments"]["split"] = why
+    # what each log gave the fit to learn from (the regimes the split weighs)
+    report["experiments"]["excites"] = {e.name: sorted(excites(e)) for e in exps}
     return report | {"adapter": "station"}
 
 
