@@ -116,7 +116,8 @@ def _split_station(exps: list[Experiment],
     held = [v[-1] for v in kinds.values() if len(v) > 1]
     if not held:
         return split_by_coverage(exps)
-    return [e for e in exps if e not in held], held, "the last repetition of every experiment run more than once"
+    return ([e for e in exps if all(e is not h for h in held)], held,
+            "the last repetition of every experiment run more than once")
 
 
 MOVING_RAD_S = 0.1
@@ -135,8 +136,10 @@ def excites(e: Experiment) -> frozenset[str]:
     exchange), ``prv steps`` and
     ``dcv steps`` (pressure transients: valve and line dynamics, supply
     droop), ``pressure ≤ 3 bar`` / ``> 3 bar`` (the level regimes of the
-    report's "where"). Thresholds are those of the replay's regimes
-    (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.prepare`).
+    report's "where"). The command-step sizes, the 1 rad/s band and the 3 bar
+    level are those of the replay's regimes
+    (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.prepare`); the shares
+    of the log and the shut's thresholds are this rule's own.
     """
     out = set()
     speed = np.abs(e.channels["omega"])
