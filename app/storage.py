@@ -69,7 +69,8 @@ CREATE TABLE IF NOT EXISTS sessions (
     person TEXT NOT NULL,
     notes TEXT NOT NULL DEFAULT '',
     created {real} NOT NULL,
-    notes_edited {real}
+    notes_edited {real},
+    notes_at_open TEXT
 );
 """
 # PostgreSQL's REAL is 4 bytes: Unix times would lose whole seconds
@@ -130,6 +131,7 @@ class Store:
                     self._db.execute("ALTER TABLE runs ADD COLUMN IF NOT EXISTS session_id BIGINT")
                     for table in ("runs", "sessions"):
                         self._db.execute(f"ALTER TABLE {table} ADD COLUMN IF NOT EXISTS notes_edited DOUBLE PRECISION")
+                    self._db.execute("ALTER TABLE sessions ADD COLUMN IF NOT EXISTS notes_at_open TEXT")
                 finally:
                     self._db.execute("SELECT pg_advisory_unlock(hashtext('cwrr-store-schema'))")
         else:
@@ -146,10 +148,12 @@ class Store:
                 cols = {r[1] for r in self._db.execute("PRAGMA table_info(runs)").fetchall()}
                 if "session_id" not in cols:  # a store made before sessions were linked to runs
                     self._db.execute("ALTER TABLE runs ADD COLUMN session_id INTEGER")
-                for table in ("runs", "sessions"):  # a store made before notes could be edited
+                for table, col, kind in (("runs", "notes_edited", "REAL"), ("sessions", "notes_edited", "REAL"),
+                                         ("sessions", "notes_at_open", "TEXT")):
+                    # a store made before notes could be edited
                     cols = {r[1] for r in self._db.execute(f"PRAGMA table_info({table})").fetchall()}
-                    if "notes_edited" not in cols:
-                        self._db.execute(f"ALTER TABLE {table} ADD COLUMN notes_edited REAL")
+                    if col not in cols:
+                        self._db.execute(f"ALTER TABLE {table} ADD COLUMN {col} {kind}")
         # a run still "running" at start-up was cut short by a crash or kill;
         # its log holds everything up to the last flush
         self._exec("UPDATE runs SET status='interrupted' WHERE status='running'")
@@ -255,11 +259,12 @@ class Store:
     def set_session_notes(self, session_id: int, notes: str) -> bool:
         """Replace a session's notes (written after the exercises, as often as not); False if there is no such session.
 
-        When they were last changed is kept beside them (``notes_edited``), so
-        the record shows that they were written after the session opened.
+        When they were last changed is kept beside them (``notes_edited``), and
+        the notes the session opened with are kept once (``notes_at_open``), so
+        the record shows what was written when.
         """
-        rows = self._exec("UPDATE sessions SET notes=?, notes_edited=? WHERE id=? RETURNING id",
-                          (notes, time.time(), session_id))
+        rows = self._exec("UPDATE sessions SET notes_at_open=COALESCE(notes_at_open, notes), notes=?, notes_edited=? "
+                          "WHERE id=? RETURNING id", (notes, time.time(), session_id))
         return bool(rows)
 
     def session(self, session_id: int) -> dict[str, Any] | None:

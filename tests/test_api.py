@@ -201,11 +201,12 @@ def test_runs_are_listed_by_person_and_kind_and_a_misspelt_filter_is_refused(cli
 
 def test_session_and_run_notes_are_written_after_the_exercises_and_bad_edits_change_nothing(client: TestClient) -> None:
     sess = client.post("/api/sessions", json={"person": "P-012", "notes": "left arm"}).json()
-    assert sess["notes_edited"] is None
+    assert sess["notes_edited"] is None and sess["notes_at_open"] is None
     r = client.patch(f"/api/sessions/{sess['id']}", json={"notes": "left arm; tired after SC-2, stopped early"})
     assert r.status_code == 200, r.text
     got = r.json()
     assert got["notes"] == "left arm; tired after SC-2, stopped early" and got["notes_edited"] >= got["created"]
+    assert got["notes_at_open"] == "left arm"  # what it opened with stays on record
     assert client.get(f"/api/sessions/{sess['id']}").json()["notes"] == got["notes"]
     for body in ({"notes": "x" * 2001}, {"notes": "y", "person": "P-013"}, {}):
         bad = client.patch(f"/api/sessions/{sess['id']}", json=body)

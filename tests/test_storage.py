@@ -67,6 +67,8 @@ def test_runs_sessions_and_parameter_sets_round_trip(url: str) -> None:
     assert s.run(rid)["notes"] == "said it pulled" and s.run(rid)["notes_edited"] > 0  # type: ignore[index]
     row = s.session(sid)
     assert row is not None and row["notes"] == "left arm; tired after SC-2" and row["notes_edited"] >= row["created"]
+    assert row["notes_at_open"] == "left arm" and s.set_session_notes(sid, "left arm; tired")
+    assert s.session(sid)["notes_at_open"] == "left arm"  # type: ignore[index]  # the first, not the last edit
     s.close()
 
 
@@ -100,6 +102,7 @@ def test_a_store_made_before_sessions_gains_the_columns(tmp_path: Path) -> None:
     s = Store(f"sqlite:///{path}")
     assert s.run(1)["session_id"] is None  # type: ignore[index]
     assert s.session(1)["notes_edited"] is None and s.set_session_notes(1, "left; edited")  # type: ignore[index]
+    assert s.session(1)["notes_at_open"] == "left"  # type: ignore[index]
     assert s.run(1)["notes_edited"] is None and s.set_run_notes(1, "edited")  # type: ignore[index]
 
 

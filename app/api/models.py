@@ -218,6 +218,7 @@ class Session(BaseModel):
         notes: Notes.
         created: When [Unix s].
         notes_edited: When the notes were last changed after the session opened [Unix s]; None: never.
+        notes_at_open: The notes it opened with, once they have been changed; None: never changed.
         runs: Ids of the runs recorded in it, newest first.
     """
 
@@ -226,6 +227,7 @@ class Session(BaseModel):
     notes: str
     created: float
     notes_edited: float | None = None
+    notes_at_open: str | None = None
     runs: list[int] = []
 
 
