@@ -179,8 +179,9 @@ def split_by_coverage(exps: list[Experiment]) -> tuple[list[Experiment], list[Ex
 
     Logs run once each leave no repetition to score on. Holding out the
     last third blindly can take every log with motion away from the fit: on
-    the protocol run once (seed 100) the inertia was then not found and
-    supply droop and valve dynamics closed 0.13 / 0.04 of the gap. Going
+    the protocol run once (seed 100) the smaller inertia was then not
+    found, and the smaller supply droop and valve dynamics closed 0.13 /
+    0.04 of the gap. Going
     from the last log back, one is held out when every regime it
     :func:`excites` is still excited by a log left to fit on.
 
