@@ -89,6 +89,11 @@ _PNEUMATIC_EFFECTS = ("vane_leakage", "external_leakage", "heat_transfer", "tube
 PHASE_KEPT_S = 0.5
 CYCLE_MEAN_S = 0.1
 STEP_V = 0.01  # a command change this large [V] is a step (the protocol's holds change by none)
+# the report's regimes ("where"), shared with what a log is read to excite (run.excites)
+PRV_STEP_V = 0.1  # a PRV command change this large [V] starts a pressure transient
+DCV_STEP_V = 0.2  # and a DCV command change this large [V]
+FAST_RAD_S = 1.0  # the top speed band [rad/s]
+LEVEL_BAR = 3.0  # the two pressure levels part here [bar abs]
 
 REPLAY_CACHE = 128  # replayed pressure sets kept per log (a descent revisits its recent points)
 TORQUE_CACHE = 64  # torque-balance predictions kept per log
@@ -416,16 +421,16 @@ class RotaryFamily:
             change[max(0, i - win): i + win + 1] = True
         steps = np.zeros(sp.shape, dtype=bool)
         dcmd = np.abs(np.diff(cmds, axis=0))
-        for i in np.flatnonzero((dcmd[:, :2] > 0.1).any(axis=1) | (dcmd[:, 2:] > 0.2).any(axis=1)):
+        for i in np.flatnonzero((dcmd[:, :2] > PRV_STEP_V).any(axis=1) | (dcmd[:, 2:] > DCV_STEP_V).any(axis=1)):
             steps[i + 1: i + 1 + int(round(0.3 / dt))] = True
         pmax = np.maximum(ch["p_a"], ch["p_b"])
         regimes = {
             "standstill": still & ~change, "motion onset/reversal": change,
             "steady motion < 0.3 rad/s": moving & ~change & (sp < 0.3),
-            "steady motion 0.3–1 rad/s": moving & ~change & (sp >= 0.3) & (sp < 1.0),
-            "steady motion ≥ 1 rad/s": moving & ~change & (sp >= 1.0),
+            "steady motion 0.3–1 rad/s": moving & ~change & (sp >= 0.3) & (sp < FAST_RAD_S),
+            "steady motion ≥ 1 rad/s": moving & ~change & (sp >= FAST_RAD_S),
             "pressure transient after a command step": steps,
-            "pressure ≤ 3 bar": pmax <= 3.0, "pressure > 3 bar": pmax > 3.0,
+            "pressure ≤ 3 bar": pmax <= LEVEL_BAR, "pressure > 3 bar": pmax > LEVEL_BAR,
         }
         inputs = {"z_a": cmds[:, 0], "z_b": cmds[:, 1], "u_a": cmds[:, 2], "u_b": cmds[:, 3], "omega": omega}
         keep = slice(0, None, max(1, int(round(1.0 / (dt * SCORE_RATE_HZ)))))

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from app.engine.diagnosis import rotary
 from app.engine.diagnosis.core import diagnose
 from app.engine.diagnosis.families import ChamberFamily, DriveFamily, split_time
 from app.engine.diagnosis.logs import Experiment, LogFormatError, read_chamber_leak, read_emps, read_logdir
@@ -122,8 +123,6 @@ def _split_station(exps: list[Experiment],
 
 MOVING_RAD_S = 0.1
 """Speed above which a sample counts as motion for :func:`excites` [rad/s]."""
-FAST_RAD_S = 1.0
-"""Speed above which it counts as fast (the report's top speed band) [rad/s]."""
 
 
 def excites(e: Experiment) -> frozenset[str]:
@@ -137,16 +136,16 @@ def excites(e: Experiment) -> frozenset[str]:
     ``dcv steps`` (pressure transients: valve and line dynamics, supply
     droop), ``pressure ≤ 3 bar`` / ``> 3 bar`` (the level regimes of the
     report's "where"). The command-step sizes, the 1 rad/s band and the 3 bar
-    level are those of the replay's regimes
-    (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.prepare`); the shares
-    of the log and the shut's thresholds are this rule's own.
+    level are the replay's regimes' own (``rotary.PRV_STEP_V``, ``DCV_STEP_V``,
+    ``FAST_RAD_S``, ``LEVEL_BAR``); the shares of the log and the shut's
+    thresholds are this rule's.
     """
     out = set()
     speed = np.abs(e.channels["omega"])
     # a fifth of the log in motion: a handle held at neutral also twitches when the pressures step
     if np.mean(speed > MOVING_RAD_S) >= 0.2:
         out.add("motion")
-    if np.mean(speed > FAST_RAD_S) >= 0.05:
+    if np.mean(speed > rotary.FAST_RAD_S) >= 0.05:
         out.add("fast motion")
     ua, ub = e.inputs["u_a"], e.inputs["u_b"]
     shut = (np.abs(ua - 5.0) < 0.1) & (np.abs(ub - 5.0) < 0.1)
@@ -163,12 +162,13 @@ def excites(e: Experiment) -> frozenset[str]:
             out.add("shut after a fast fill or vent")
             break
     z = np.column_stack([e.inputs["z_a"], e.inputs["z_b"]])
-    if (np.abs(np.diff(z, axis=0)) > 0.1).any():
+    if (np.abs(np.diff(z, axis=0)) > rotary.PRV_STEP_V).any():
         out.add("prv steps")
-    if (np.abs(np.diff(np.column_stack([ua, ub]), axis=0)) > 0.2).any():
+    if (np.abs(np.diff(np.column_stack([ua, ub]), axis=0)) > rotary.DCV_STEP_V).any():
         out.add("dcv steps")
     pmax = np.maximum(e.channels["p_a"], e.channels["p_b"])
-    for name, share in (("pressure ≤ 3 bar", np.mean(pmax <= 3.0)), ("pressure > 3 bar", np.mean(pmax > 3.0))):
+    for name, share in (("pressure ≤ 3 bar", np.mean(pmax <= rotary.LEVEL_BAR)),
+                        ("pressure > 3 bar", np.mean(pmax > rotary.LEVEL_BAR))):
         if share >= 0.1:
             out.add(name)
     return frozenset(out)
