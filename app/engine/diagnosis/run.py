@@ -50,6 +50,11 @@ def _split(exps: list[Experiment], held_out: list[str] | None) -> tuple[list[Exp
     if len(exps) == 1:
         a, b = split_time(exps[0])
         return [a], [b]
+    return split_last_third(exps)
+
+
+def split_last_third(exps: list[Experiment]) -> tuple[list[Experiment], list[Experiment]]:
+    """Fit on the first two thirds of several experiments, hold out the rest (at least one)."""
     n_held = max(1, math.ceil(len(exps) / 3))
     return exps[:-n_held], exps[-n_held:]
 

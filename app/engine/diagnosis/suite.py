@@ -25,7 +25,7 @@ from app.engine.diagnosis.core import channel_spread, diagnose
 from app.engine.diagnosis.logs import Experiment
 from app.engine.diagnosis.protocol import run_protocol
 from app.engine.diagnosis.rotary import RotaryFamily
-from app.engine.diagnosis.run import PROTOCOL, split_by_coverage
+from app.engine.diagnosis.run import PROTOCOL, split_by_coverage, split_last_third
 from app.engine.params import (
     HeatTransferEffect,
     InertiaEffect,
@@ -276,8 +276,7 @@ def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float
     if once == "coverage":
         calib, held, _ = split_by_coverage(exps)
     elif once == "last_third":
-        n_held = math.ceil(len(exps) / 3)
-        calib, held = exps[:-n_held], exps[-n_held:]
+        calib, held = split_last_third(exps)
     else:
         calib = [e for e in exps if e.meta["repetition"] == 1]
         held = [e for e in exps if e.meta["repetition"] == 2]
