@@ -76,6 +76,10 @@ CREATE TABLE IF NOT EXISTS sessions (
 # PostgreSQL's REAL is 4 bytes: Unix times would lose whole seconds
 _SQLITE = {"pk": "INTEGER PRIMARY KEY AUTOINCREMENT", "real": "REAL", "int": "INTEGER"}
 _POSTGRES = {"pk": "BIGSERIAL PRIMARY KEY", "real": "DOUBLE PRECISION", "int": "BIGINT"}
+_ADDED = (("runs", "session_id", "{int}"),  # sessions linked to runs
+          ("runs", "notes_edited", "{real}"), ("sessions", "notes_edited", "{real}"),  # notes edited afterwards
+          ("sessions", "notes_at_open", "TEXT"))
+"""Columns added since the first schema: (table, column, type): a store made before gains them on open."""
 
 
 def sqlite_path(url: str) -> Path:
@@ -128,10 +132,9 @@ class Store:
                 try:
                     for stmt in filter(str.strip, ddl.split(";")):
                         self._db.execute(stmt)
-                    self._db.execute("ALTER TABLE runs ADD COLUMN IF NOT EXISTS session_id BIGINT")
-                    for table in ("runs", "sessions"):
-                        self._db.execute(f"ALTER TABLE {table} ADD COLUMN IF NOT EXISTS notes_edited DOUBLE PRECISION")
-                    self._db.execute("ALTER TABLE sessions ADD COLUMN IF NOT EXISTS notes_at_open TEXT")
+                    for table, col, kind in _ADDED:
+                        self._db.execute(f"ALTER TABLE {table} ADD COLUMN IF NOT EXISTS {col} "
+                                         + kind.format(**_POSTGRES))
                 finally:
                     self._db.execute("SELECT pg_advisory_unlock(hashtext('cwrr-store-schema'))")
         else:
@@ -145,15 +148,11 @@ class Store:
                 fcntl.flock(gate, fcntl.LOCK_EX)  # released when the file closes
                 self._db.execute("PRAGMA journal_mode=WAL")
                 self._db.executescript(_TABLES.format(**_SQLITE))
-                cols = {r[1] for r in self._db.execute("PRAGMA table_info(runs)").fetchall()}
-                if "session_id" not in cols:  # a store made before sessions were linked to runs
-                    self._db.execute("ALTER TABLE runs ADD COLUMN session_id INTEGER")
-                for table, col, kind in (("runs", "notes_edited", "REAL"), ("sessions", "notes_edited", "REAL"),
-                                         ("sessions", "notes_at_open", "TEXT")):
-                    # a store made before notes could be edited
-                    cols = {r[1] for r in self._db.execute(f"PRAGMA table_info({table})").fetchall()}
-                    if col not in cols:
-                        self._db.execute(f"ALTER TABLE {table} ADD COLUMN {col} {kind}")
+                have = {t: {r[1] for r in self._db.execute(f"PRAGMA table_info({t})").fetchall()}
+                        for t in {t for t, _, _ in _ADDED}}
+                for table, col, kind in _ADDED:  # SQLite has no ADD COLUMN IF NOT EXISTS
+                    if col not in have[table]:
+                        self._db.execute(f"ALTER TABLE {table} ADD COLUMN {col} " + kind.format(**_SQLITE))
         # a run still "running" at start-up was cut short by a crash or kill;
         # its log holds everything up to the last flush
         self._exec("UPDATE runs SET status='interrupted' WHERE status='running'")
