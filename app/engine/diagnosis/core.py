@@ -95,7 +95,9 @@ class Param:
         log: Fit in log space (spans decades; needs ``lo > 0``).
         off: For an effect parameter, the value at which the effect (nearly)
             vanishes, so that a fit started there is never worse than the
-            model without it (``None``: ``x0``).
+            model without it (``None``: ``x0``). Where it only nearly vanishes
+            that promise is as good as the "nearly" (docs/diagnosis.md, "Where
+            'off' is not the baseline").
     """
 
     name: str
@@ -542,7 +544,7 @@ class Candidate:
 
 def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_sc: Scores, effects: tuple[str, ...],
               norm: _Norm, blocks: int, scales: dict[str, float], stop: threading.Event | None = None) -> Candidate:
-    # from the effect switched off (never worse than the reference) and from its typical size
+    # from the effect switched off (the reference, where "off" vanishes exactly) and from its typical size
     new = [p for e in effects for p in family.effect(e) if p.name not in ref.params]
     off = ref.params | {p.name: p.x0 if p.off is None else p.off for p in new}
     typ = ref.params | {p.name: p.x0 for p in new}
@@ -578,7 +580,7 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
             if lin is not None and linear is not None:
                 st = linear(calib, st, effects) or st
         # One descent, not one from each: a least-squares descent never ends above its start, so
-        # the fit is still never worse than the reference (see docs/diagnosis.md, "One descent")
+        # the fit is still never worse than its effect-off start (see docs/diagnosis.md, "One descent")
         f = fit(family, calib, effects, scales=scales, stop=stop, starts=[*starts, st], free=rebase)
     else:
         if lin_ref is None and points and new:
