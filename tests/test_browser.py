@@ -494,7 +494,7 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#detail")).to_contain_text(
         "a sensor reading nothing bends the fit to match it): isotonic-1 (torque = 0.00).")
     expect(page.locator("#detail")).to_contain_text("Gap left unexplained with sensor_bias: ")
-    expect(page.locator("#howfar")).to_contain_text("after with sensor_bias")
+    expect(page.locator("#howfar-legend")).to_contain_text("after with sensor_bias")
     expect(page.locator("#ranking")).to_contain_text("(not the verdict: friction_per_direction explains more)")
     expect(page.locator("#detail")).to_contain_text(
         "Or friction_per_direction (friction off per direction) instead of sensor_bias: these logs cannot tell them "

@@ -638,3 +638,43 @@ def test_cwrr_diagnose_refuses_a_malformed_station_log(tmp_path: Path, capsys: p
     _write_raw(tmp_path, "bad", list(LOG_COLUMNS), rows, META)
     assert main(["diagnose", str(tmp_path)]) == 2
     assert "bad: time is not increasing at row 51" in capsys.readouterr().err
+
+
+class _ToneOffsetOff(_ToneOffset):
+    """The offset candidate with a declared value at which it vanishes."""
+
+    def effect(self, name: str) -> list[Param]:
+        return [Param("offset.c", 0.0, -1.0, 1.0, "-", off=0.0)]
+
+
+def test_an_effect_its_own_fit_leaves_switched_off_is_not_credited_with_the_gap(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # A recalibration stuck in the wrong basin (nominal's lobe, 1.2 Hz for a rig at 0.93 Hz: what
+    # the browser test's effect-free rig once met) leaves a gap that a candidate refitting the
+    # baseline beside it closes with the effect at its off value. Its GC is the baseline's.
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 5.0, 0.01)
+    exps = [Experiment(f"tone{k}", t, {"x": t}, {"y": np.sin(2.0 * np.pi * 0.93 * t) + rng.normal(0.0, 0.01, t.size)},
+                       {}) for k in range(2)]
+
+    def stuck(family: Any, calib: list[Any], scales: Any = None, stop: Any = None) -> Any:
+        return core.fit(family, calib, (), scales=scales, starts=[{"a": 1.2}], stop=stop)
+
+    monkeypatch.setattr(core, "recalibrate", stuck)
+    r = diagnose(_ToneOffsetOff(), exps[:1], exps[1:])
+    (cand,) = r["ranking"]
+    assert cand["baseline_params"]["a"] == pytest.approx(0.93, abs=0.002)  # the refit found the rig
+    assert abs(cand["params"]["offset.c"]) < 2e-3 and cand["gap_closure"] > 0.9, cand
+    assert cand["switched_off"] and not cand["significant"]
+    assert r["verdict"]["effects"] == []
+    assert "offset's fit left the effect switched off and still closed" in r["verdict"]["summary"]
+
+
+def test_switched_off_reads_each_parameter_on_its_own_scale() -> None:
+    lin = Param("e.x", 0.5, 0.0, 2.0, "-", off=0.0)
+    log = Param("e.c", 3e-3, 1e-5, 0.5, "l/(s·bar)", log=True, off=1e-5)
+    assert core.switched_off([lin, log], {"e.x": 0.0015, "e.c": 1.005e-5})
+    assert not core.switched_off([lin, log], {"e.x": 0.0025, "e.c": 1e-5})  # 2.5e-3 > 1e-3 of a range of 2
+    assert not core.switched_off([lin, log], {"e.x": 0.0, "e.c": 1.2e-5})  # log(1.2) > 1e-3 · log(5e4)
+    assert not core.switched_off([Param("e.y", 1.0, 0.0, 2.0, "-")], {"e.y": 1.0})  # no declared off
+    assert not core.switched_off([], {})

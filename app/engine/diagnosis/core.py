@@ -530,10 +530,11 @@ class Candidate:
     improvement: dict[str, float]
     significant: bool
     relevant: bool
+    switched_off: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         """JSON view."""
-        return {"effect": self.effect, "gap_closure": self.gap_closure,
+        return {"effect": self.effect, "gap_closure": self.gap_closure, "switched_off": self.switched_off,
                 "params_at_bound": [n for n in self.fit.at_bound if "." in n], "gap_closure_ci90": list(self.ci),
                 "delta_bic": self.delta_bic, "significant": self.significant, "relevant": self.relevant,
                 "nrmse": self.nrmse, "rms_improvement": self.improvement,
@@ -596,9 +597,39 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     imp = {c: float(a - b) for c, a, b in zip(family.channels, rms_ref, rms_new, strict=True)}
     relevant = any(imp[c] > family.relevance.get(c, 0.0) for c in family.channels)
     dbic = ref.bic - f.bic
-    sig = dbic > BIC_STRONG and ci[0] > 0.0 and gc >= GC_MIN and relevant
+    # An effect its own fit left where it vanishes explains nothing: whatever that fit gained came
+    # from the baseline's parameters it refitted beside it (the browser test's effect-free rig once
+    # named external_leakage at c = 1e-5 l/(s·bar), its off bound, with GC 0.79)
+    gone = switched_off(new, f.params)
+    sig = dbic > BIC_STRONG and ci[0] > 0.0 and gc >= GC_MIN and relevant and not gone
     return Candidate(effects[-1], f, sc, gc, ci, dbic, dict(zip(family.channels, map(float, nr), strict=True)),
-                     imp, sig, relevant)
+                     imp, sig, relevant, gone)
+
+
+OFF_TOLERANCE = 1e-3
+"""How near its ``off`` value a fitted parameter counts as there, as a share of its range
+(of the log range for a log parameter)."""
+
+
+def switched_off(new: list[Param], params: dict[str, float]) -> bool:
+    """Whether a fit left every parameter of ``new`` at its declared ``off`` value.
+
+    Args:
+        new: An effect's parameters; one without a declared ``off`` (an
+            effect with no value at which it vanishes) makes the answer False.
+        params: The fitted values.
+    """
+    offs = [(p, p.off) for p in new if p.off is not None]
+    if not new or len(offs) < len(new):
+        return False
+
+    def there(p: Param, off: float) -> bool:
+        v = params[p.name]
+        if p.log:
+            return abs(math.log(v / off)) <= OFF_TOLERANCE * math.log(p.hi / p.lo)
+        return abs(v - off) <= OFF_TOLERANCE * (p.hi - p.lo)
+
+    return all(there(p, off) for p, off in offs)
 
 
 def _grid_start(family: Family, preps: list[Any], effects: tuple[str, ...], ref: dict[str, float],
@@ -731,7 +762,8 @@ def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, 
                 # split between them, which the held-out prediction shows only where they differ
                 # (breakaway, the Stribeck range): GC 0.25 and 0.20 of what the offsets left on two such
                 # rigs, at most 0.01 on six with offsets alone
-                also = both.delta_bic > BIC_STRONG and both.ci[0] > 0.0 and both.gap_closure >= GC_MIN
+                also = (both.delta_bic > BIC_STRONG and both.ci[0] > 0.0 and both.gap_closure >= GC_MIN
+                        and not both.switched_off)
                 row |= {"beside_effect": {"gap_closure": both.gap_closure, "gap_closure_ci90": list(both.ci),
                                           "delta_bic": both.delta_bic, "significant": bool(also),
                                           "relevant": both.relevant,
@@ -743,8 +775,15 @@ def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, 
     return out, verdict_model
 
 
-def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap: dict[str, Any]) -> str:
+def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap: dict[str, Any],
+             singles: Sequence[Candidate] = ()) -> str:
     """The verdict in one line."""
+    # a fit that left its effect off yet closed part of the gap found better baseline values
+    # than the recalibration did: the user should know that the reference itself was beatable
+    off = sorted((c for c in singles if c.switched_off and c.gap_closure >= GC_MIN), key=lambda c: -c.gap_closure)
+    beatable = (f"; {off[0].effect}'s fit left the effect switched off and still closed {off[0].gap_closure:.2f} "
+                "of the gap: the baseline's own parameters, refitted beside it, did (the recalibration had not "
+                "found their best values)") if off else ""
     if selected:
         out = " + ".join(c.effect for c in selected)
     elif any(a["dropped"] for a in alternatives):
@@ -752,11 +791,13 @@ def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap:
     elif not gap["above_noise"]:
         lo, hi = gap["ci90"]
         return (f"no significant effect: the baseline is not significantly above the noise (E {gap['e']:.3g} "
-                f"against a floor of {gap['e_floor']:.3g}; 90 % CI of the difference {lo:.2g} … {hi:.2g})")
+                f"against a floor of {gap['e_floor']:.3g}; 90 % CI of the difference {lo:.2g} … {hi:.2g})"
+                + beatable)
     else:
         return (f"no significant effect: no candidate explains what the baseline leaves (E {gap['e']:.3g}, "
                 f"{gap['e'] / gap['e_floor']:.3g} × the noise floor)" if gap["e_floor"] > 0.0 else
-                f"no significant effect: no candidate explains what the baseline leaves (E {gap['e']:.3g})")
+                f"no significant effect: no candidate explains what the baseline leaves (E {gap['e']:.3g})"
+                ) + beatable
     for a in alternatives:
         if a["dropped"]:
             out += (f"; {a['instead_of']} closed the gap, but {a['explanation']} ({a['description']}) closes more "
@@ -771,7 +812,7 @@ def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap:
             out += (f"; with {a['explanation']} beside {a['instead_of']} ({a['description']}), which adds "
                     f"significantly to it; together: "
                     + ", ".join(f"{k} = {v:.3g}" for k, v in a["beside_effect"]["params"].items()))
-    return out
+    return out + beatable
 
 
 def _rank_key(c: Candidate) -> tuple[bool, bool, float]:
@@ -959,7 +1000,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                     "separating_experiments": separate,
                     "alternatives": [a["explanation"] for a in alternatives
                                      if a["confusable"] or a["better"] or a["also"]],
-                    "summary": _summary(selected, alternatives, gap)},
+                    "summary": _summary(selected, alternatives, gap, singles)},
         "how_far": {"before": dict(zip(chans, map(float, nr_base), strict=True)),
                     "after": dict(zip(chans, map(float, nr_final), strict=True)),
                     "model": model, "e_before": e_base, "e_after": e_final, "e_floor": e_floor,
