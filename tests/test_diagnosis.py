@@ -668,6 +668,8 @@ def test_an_effect_its_own_fit_leaves_switched_off_is_not_credited_with_the_gap(
     assert cand["switched_off"] and not cand["significant"]
     assert r["verdict"]["effects"] == []
     assert "offset's fit left the effect switched off and still closed" in r["verdict"]["summary"]
+    beaten = r["verdict"]["baseline_beaten"]
+    assert beaten["by"] == "offset" and beaten["baseline_params"]["a"] == pytest.approx(0.93, abs=0.002)
 
 
 def test_switched_off_reads_each_parameter_on_its_own_scale() -> None:

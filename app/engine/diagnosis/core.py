@@ -775,15 +775,27 @@ def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, 
     return out, verdict_model
 
 
+def _baseline_beaten(singles: Sequence[Candidate]) -> dict[str, Any] | None:
+    """The candidate fit that left its effect switched off and closed the most of the gap (≥ GC_MIN).
+
+    Such a fit found better values of the baseline's own parameters than the
+    recalibration did: the reference every effect is judged against was beatable
+    without any effect, which the user should know.
+    """
+    off = [c for c in singles if c.switched_off and c.gap_closure >= GC_MIN]
+    if not off:
+        return None
+    c = max(off, key=lambda c: c.gap_closure)
+    return {"by": c.effect, "gap_closure": c.gap_closure,
+            "baseline_params": {k: v for k, v in c.fit.params.items() if "." not in k}}
+
+
 def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap: dict[str, Any],
-             singles: Sequence[Candidate] = ()) -> str:
+             beaten: dict[str, Any] | None = None) -> str:
     """The verdict in one line."""
-    # a fit that left its effect off yet closed part of the gap found better baseline values
-    # than the recalibration did: the user should know that the reference itself was beatable
-    off = sorted((c for c in singles if c.switched_off and c.gap_closure >= GC_MIN), key=lambda c: -c.gap_closure)
-    beatable = (f"; {off[0].effect}'s fit left the effect switched off and still closed {off[0].gap_closure:.2f} "
+    beatable = (f"; {beaten['by']}'s fit left the effect switched off and still closed {beaten['gap_closure']:.2f} "
                 "of the gap: the baseline's own parameters, refitted beside it, did (the recalibration had not "
-                "found their best values)") if off else ""
+                "found their best values)") if beaten else ""
     if selected:
         out = " + ".join(c.effect for c in selected)
     elif any(a["dropped"] for a in alternatives):
@@ -1000,7 +1012,8 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                     "separating_experiments": separate,
                     "alternatives": [a["explanation"] for a in alternatives
                                      if a["confusable"] or a["better"] or a["also"]],
-                    "summary": _summary(selected, alternatives, gap, singles)},
+                    "baseline_beaten": (beaten := _baseline_beaten(singles)),
+                    "summary": _summary(selected, alternatives, gap, beaten)},
         "how_far": {"before": dict(zip(chans, map(float, nr_base), strict=True)),
                     "after": dict(zip(chans, map(float, nr_final), strict=True)),
                     "model": model, "e_before": e_base, "e_after": e_final, "e_floor": e_floor,
