@@ -647,11 +647,12 @@ class _ToneOffsetOff(_ToneOffset):
         return [Param("offset.c", 0.0, -1.0, 1.0, "-", off=0.0)]
 
 
-def test_an_effect_its_own_fit_leaves_switched_off_is_not_credited_with_the_gap(
+def test_an_effect_its_own_fit_leaves_switched_off_is_not_credited_and_the_baseline_is_refitted(
         monkeypatch: pytest.MonkeyPatch) -> None:
     # A recalibration stuck in the wrong basin (nominal's lobe, 1.2 Hz for a rig at 0.93 Hz: what
     # the browser test's effect-free rig once met) leaves a gap that a candidate refitting the
-    # baseline beside it closes with the effect at its off value. Its GC is the baseline's.
+    # baseline beside it closes with the effect at its off value. That GC is the baseline's: the
+    # baseline is refitted from there and the candidates judged against it.
     rng = np.random.default_rng(3)
     t = np.arange(0.0, 5.0, 0.01)
     exps = [Experiment(f"tone{k}", t, {"x": t}, {"y": np.sin(2.0 * np.pi * 0.93 * t) + rng.normal(0.0, 0.01, t.size)},
@@ -660,16 +661,28 @@ def test_an_effect_its_own_fit_leaves_switched_off_is_not_credited_with_the_gap(
     def stuck(family: Any, calib: list[Any], scales: Any = None, stop: Any = None) -> Any:
         return core.fit(family, calib, (), scales=scales, starts=[{"a": 1.2}], stop=stop)
 
+    singles: list[Any] = []
+    real = core._evaluate
+
+    def kept(*args: Any, **kw: Any) -> Any:
+        c = real(*args, **kw)
+        singles.append(c)
+        return c
+
     monkeypatch.setattr(core, "recalibrate", stuck)
+    monkeypatch.setattr(core, "_evaluate", kept)
     r = diagnose(_ToneOffsetOff(), exps[:1], exps[1:])
-    (cand,) = r["ranking"]
-    assert cand["baseline_params"]["a"] == pytest.approx(0.93, abs=0.002)  # the refit found the rig
-    assert abs(cand["params"]["offset.c"]) < 2e-3 and cand["gap_closure"] > 0.9, cand
-    assert cand["switched_off"] and not cand["significant"]
-    assert r["verdict"]["effects"] == []
-    assert "offset's fit left the effect switched off and still closed" in r["verdict"]["summary"]
+    first = singles[0]  # judged against the stuck reference
+    assert first.fit.params["a"] == pytest.approx(0.93, abs=0.002)  # its refit found the rig
+    assert abs(first.fit.params["offset.c"]) < 2e-3 and first.gap_closure > 0.9
+    assert first.switched_off and not first.significant
     beaten = r["verdict"]["baseline_beaten"]
-    assert beaten["by"] == "offset" and beaten["baseline_params"]["a"] == pytest.approx(0.93, abs=0.002)
+    assert beaten["by"] == "offset" and beaten["rereferenced"]
+    assert beaten["calibration_cost_after"] < 0.1 * beaten["calibration_cost_before"]
+    assert r["baseline"]["identifiability"]["params"]["a"] == pytest.approx(0.93, abs=0.002)
+    assert len(singles) == 2 and r["ranking"][0]["gap_closure"] < 0.2  # judged again, against the refit
+    assert r["verdict"]["effects"] == []
+    assert "the baseline was recalibrated from there" in r["verdict"]["summary"]
 
 
 def test_switched_off_reads_each_parameter_on_its_own_scale() -> None:

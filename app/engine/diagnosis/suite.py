@@ -293,7 +293,8 @@ def run_case(effect: str | None, magnitude: int = 0, seed: int = 0, scale: float
             "friction_asymmetry": friction_asymmetry, "once": once, "held_out": [e.name for e in held],
             "rank": rank, "first": first, "verdict": found,
             "confusable_with": rep["verdict"]["confusable_with"], "alternatives": rep["verdict"]["alternatives"],
-            "gap_closure": gc, "oracle_gap_closure": oracle, "seconds": secs, "report": rep}
+            "gap_closure": gc, "oracle_gap_closure": oracle, "seconds": secs,
+            "baseline_beaten": rep["verdict"]["baseline_beaten"], "report": rep}
 
 
 def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
@@ -318,6 +319,6 @@ def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
         "median_oracle_gc": float(np.median([r["oracle_gap_closure"] for r in eff])) if eff else None,
         "rows": [{k: r.get(k) for k in ("effect", "magnitude", "seed", "structural", "errors", "friction_asymmetry",
                                         "rank", "verdict", "confusable_with", "alternatives", "gap_closure",
-                                        "oracle_gap_closure", "seconds")}
+                                        "oracle_gap_closure", "baseline_beaten", "seconds")}
                  for r in results],
     }
