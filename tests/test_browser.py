@@ -73,12 +73,13 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     assert isinstance(browser, Browser)
     base, _viser = station
     SHOTS.mkdir(parents=True, exist_ok=True)
-    # a slower exercise shape (half the default 0.3 rad/s: ≈ 17 s instead of ≈ 9.5 s), stored the way a
-    # researcher would, so that STOP lands mid-run however long the screenshots take on a loaded machine
-    # (on a fresh clone's CI the default run once ended on its own before STOP was pressed)
+    # a slower exercise shape (a quarter of the default 0.3 rad/s: ≈ 34 s instead of ≈ 9.5 s), stored the
+    # way a researcher would, so that STOP lands mid-run however long the screenshots take on a loaded
+    # machine (on a fresh clone's CI the default run once ended on its own before STOP was pressed, and
+    # half the default once did beside a suite run); STOP ends it, so the test takes no longer
     req = urllib.request.Request(base + "/api/params", method="POST", headers={"Content-Type": "application/json"},
                                  data=json.dumps({"kind": "workout", "name": "slow and steady",
-                                                  "values": {"speed": 0.15}}).encode())
+                                                  "values": {"speed": 0.075}}).encode())
     with urllib.request.urlopen(req, timeout=10) as r:
         shape_id = json.loads(r.read())["id"]
     page = browser.new_page(viewport={"width": 1400, "height": 1000}, accept_downloads=True)
