@@ -805,14 +805,13 @@ def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap:
         out = "no significant effect"
     elif not gap["above_noise"]:
         lo, hi = gap["ci90"]
-        return (f"no significant effect: the baseline is not significantly above the noise (E {gap['e']:.3g} "
-                f"against a floor of {gap['e_floor']:.3g}; 90 % CI of the difference {lo:.2g} … {hi:.2g})"
-                + beatable)
+        out = (f"no significant effect: the baseline is not significantly above the noise (E {gap['e']:.3g} "
+               f"against a floor of {gap['e_floor']:.3g}; 90 % CI of the difference {lo:.2g} … {hi:.2g})")
     else:
-        return (f"no significant effect: no candidate explains what the baseline leaves (E {gap['e']:.3g}, "
-                f"{gap['e'] / gap['e_floor']:.3g} × the noise floor)" if gap["e_floor"] > 0.0 else
-                f"no significant effect: no candidate explains what the baseline leaves (E {gap['e']:.3g})"
-                ) + beatable
+        out = (f"no significant effect: no candidate explains what the baseline leaves (E {gap['e']:.3g}, "
+               f"{gap['e'] / gap['e_floor']:.3g} × the noise floor)" if gap["e_floor"] > 0.0 else
+               f"no significant effect: no candidate explains what the baseline leaves (E {gap['e']:.3g})")
+    # without an effect in the verdict and none dropped, no alternative was weighed: the loop adds nothing
     for a in alternatives:
         if a["dropped"]:
             out += (f"; {a['instead_of']} closed the gap, but {a['explanation']} ({a['description']}) closes more "
