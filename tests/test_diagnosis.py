@@ -685,6 +685,43 @@ def test_an_effect_its_own_fit_leaves_switched_off_is_not_credited_and_the_basel
     assert "the baseline was recalibrated from there" in r["verdict"]["summary"]
 
 
+def test_a_fit_whose_baseline_values_close_the_gap_without_its_effect_is_not_credited(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # The same stuck recalibration, and a candidate with no value at which it vanishes: the
+    # switched-off rule cannot see it. Its fit with the effect taken out (the frequency it
+    # refitted, no offset) closes the gap alone, so the baseline is refitted from there.
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 5.0, 0.01)
+    exps = [Experiment(f"tone{k}", t, {"x": t}, {"y": np.sin(2.0 * np.pi * 0.93 * t) + rng.normal(0.0, 0.01, t.size)},
+                       {}) for k in range(2)]
+
+    def stuck(family: Any, calib: list[Any], scales: Any = None, stop: Any = None) -> Any:
+        return core.fit(family, calib, (), scales=scales, starts=[{"a": 1.2}], stop=stop)
+
+    singles: list[Any] = []
+    real = core._evaluate
+
+    def kept(*args: Any, **kw: Any) -> Any:
+        c = real(*args, **kw)
+        singles.append(c)
+        return c
+
+    monkeypatch.setattr(core, "recalibrate", stuck)
+    monkeypatch.setattr(core, "_evaluate", kept)
+    r = diagnose(_ToneOffset(), exps[:1], exps[1:])
+    first = singles[0]  # judged against the stuck reference
+    assert first.fit.params["a"] == pytest.approx(0.93, abs=0.002) and first.gap_closure > 0.9
+    assert not first.switched_off and first.significant  # what used to be the verdict
+    assert first.rebased_gap_closure is not None and first.rebased_gap_closure > 0.9
+    beaten = r["verdict"]["baseline_beaten"]
+    assert beaten["by"] == "offset" and not beaten["switched_off"] and beaten["rereferenced"]
+    assert beaten["rebased_gap_closure"] == first.rebased_gap_closure
+    assert len(singles) == 2 and r["ranking"][0]["gap_closure"] < 0.2  # judged again, against the refit
+    assert r["ranking"][0]["rebased_gap_closure"] is None or r["ranking"][0]["rebased_gap_closure"] < 0.2
+    assert r["verdict"]["effects"] == []
+    assert "with the effect taken out, still closes" in r["verdict"]["summary"]
+
+
 def test_switched_off_reads_each_parameter_on_its_own_scale() -> None:
     lin = Param("e.x", 0.5, 0.0, 2.0, "-", off=0.0)
     log = Param("e.c", 3e-3, 1e-5, 0.5, "l/(s·bar)", log=True, off=1e-5)

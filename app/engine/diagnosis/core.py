@@ -531,10 +531,12 @@ class Candidate:
     significant: bool
     relevant: bool
     switched_off: bool = False
+    rebased_gap_closure: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """JSON view."""
         return {"effect": self.effect, "gap_closure": self.gap_closure, "switched_off": self.switched_off,
+                "rebased_gap_closure": self.rebased_gap_closure,
                 "params_at_bound": [n for n in self.fit.at_bound if "." in n], "gap_closure_ci90": list(self.ci),
                 "delta_bic": self.delta_bic, "significant": self.significant, "relevant": self.relevant,
                 "nrmse": self.nrmse, "rms_improvement": self.improvement,
@@ -603,7 +605,21 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     gone = switched_off(new, f.params)
     sig = dbic > BIC_STRONG and ci[0] > 0.0 and gc >= GC_MIN and relevant and not gone
     return Candidate(effects[-1], f, sc, gc, ci, dbic, dict(zip(family.channels, map(float, nr), strict=True)),
-                     imp, sig, relevant, gone)
+                     imp, sig, relevant, gone, _rebased_gc(family, held, ref, ref_sc, f, new, norm, blocks))
+
+
+def _rebased_gc(family: Family, held: list[Any], ref: Fit, ref_sc: Scores, f: Fit, new: list[Param], norm: _Norm,
+                blocks: int) -> float | None:
+    """Held-out GC of ``f`` with its last effect taken out: what the values it refitted beside it close alone.
+
+    None when the fit moved none of the reference's values (the reference itself, GC 0).
+    """
+    names = {p.name for p in new}
+    kept = {k: v for k, v in f.params.items() if k not in names}
+    if all(kept[k] == ref.params.get(k) for k in kept):
+        return None
+    bare = Fit(f.effects[:-1], kept, {}, [], np.eye(0), math.nan, math.nan, 0, 0)
+    return gap_closure(ref_sc, score(family, held, bare, blocks), norm)
 
 
 OFF_TOLERANCE = 1e-3
@@ -776,18 +792,24 @@ def _alternatives(family: Family, calib: list[Any], held: list[Any], base: Fit, 
 
 
 def _baseline_beaten(singles: Sequence[Candidate]) -> dict[str, Any] | None:
-    """The candidate fit that left its effect switched off and closed the most of the gap (≥ GC_MIN).
+    """The candidate fit whose refitted baseline values close the most of the gap without its effect (≥ GC_MIN).
 
     Such a fit found better values of the baseline's own parameters than the
     recalibration did: the reference every effect is judged against was
     beatable without any effect (:func:`_diagnose` then recalibrates from
-    there and says so).
+    there and says so). A fit that left its effect switched off counts with
+    its own GC, which is then the baseline values' alone.
     """
-    off = [c for c in singles if c.switched_off and c.gap_closure >= GC_MIN]
-    if not off:
+    def alone(c: Candidate) -> float:
+        return max(-math.inf if c.rebased_gap_closure is None else c.rebased_gap_closure,
+                   c.gap_closure if c.switched_off else -math.inf)
+
+    beat = [c for c in singles if alone(c) >= GC_MIN]
+    if not beat:
         return None
-    c = max(off, key=lambda c: c.gap_closure)
-    return {"by": c.effect, "gap_closure": c.gap_closure,
+    c = max(beat, key=alone)
+    return {"by": c.effect, "gap_closure": c.gap_closure, "rebased_gap_closure": alone(c),
+            "switched_off": c.switched_off,
             "baseline_params": {k: v for k, v in c.fit.params.items() if "." not in k}}
 
 
@@ -795,8 +817,10 @@ def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap:
              beaten: dict[str, Any] | None = None) -> str:
     """The verdict in one line."""
     beatable = "" if beaten is None else (
-        f"; {beaten['by']}'s fit left the effect switched off and still closed {beaten['gap_closure']:.2f} of the "
-        "gap: the baseline's own parameters, refitted beside it, did; "
+        (f"; {beaten['by']}'s fit left the effect switched off and still closed {beaten['gap_closure']:.2f} of the "
+         if beaten["switched_off"] else
+         f"; {beaten['by']}'s fit, with the effect taken out, still closes {beaten['rebased_gap_closure']:.2f} of the ")
+        + "gap: the baseline's own parameters, refitted beside it, did; "
         + ("the baseline was recalibrated from there and every candidate judged against that"
            if beaten.get("rereferenced") else "a descent of the baseline from there was no cheaper"))
     if selected:
