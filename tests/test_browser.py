@@ -491,7 +491,16 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     rep["ranking"][0]["dropped_for"] = ["friction_per_direction"]  # as where the alternative explains more
     rep["how_far"]["model"] = ["sensor_bias"]
     rep["experiments"]["flat_channels"] = {"isotonic-1": {"torque": 0.0}}
+    rep["ranking"][0]["rebased_gap_closure"] = 0.0123
+    rep["verdict"]["baseline_beaten"] = {"by": "heat_transfer", "gap_closure": -0.46, "rebased_gap_closure": 0.202,
+                                         "switched_off": False, "rereferenced": True}
     page.evaluate("rep => show(rep)", rep)
+    expect(page.locator("#ranking")).to_contain_text("GC without the effect")
+    expect(page.locator("#ranking")).to_contain_text("0.0123")
+    expect(page.locator("#detail")).to_contain_text(
+        "heat_transfer's fit, with the effect taken out, still closes 0.202 of the gap: the baseline's own "
+        "parameters, refitted beside it, did; the baseline was recalibrated from there and every candidate judged "
+        "against that.")
     expect(page.locator("#detail")).to_contain_text(
         "a sensor reading nothing bends the fit to match it): isotonic-1 (torque = 0.00).")
     expect(page.locator("#detail")).to_contain_text("Gap left unexplained with sensor_bias: ")
