@@ -401,12 +401,18 @@ def _units(n: int, blocks: int) -> list[np.ndarray]:
 
 def score(family: Family, preps: list[Any], f: Fit, blocks: int) -> Scores:
     """Held-out squared errors per unit (experiment, or ``blocks`` time blocks of each) and channel."""
+    return score_at(family, preps, f.params, f.effects, blocks)
+
+
+def score_at(family: Family, preps: list[Any], params: dict[str, float], effects: tuple[str, ...],
+             blocks: int) -> Scores:
+    """:func:`score` of the model with ``effects`` at ``params`` (fitted or not)."""
     rows_sse, rows_cnt = [], []
     prefetch = getattr(family, "prefetch", None)
     if prefetch is not None:
-        prefetch(preps, [f.params], f.effects)
+        prefetch(preps, [params], effects)
     for p in preps:
-        pr = family.predict(p, f.params, f.effects)
+        pr = family.predict(p, params, effects)
         m = family.measured(p)
         n = len(m[family.channels[0]])
         for idx in _units(n, blocks):
@@ -618,8 +624,7 @@ def _rebased_gc(family: Family, held: list[Any], ref: Fit, ref_sc: Scores, f: Fi
     kept = {k: v for k, v in f.params.items() if k not in names}
     if all(kept[k] == ref.params.get(k) for k in kept):
         return None
-    bare = Fit(f.effects[:-1], kept, {}, [], np.eye(0), math.nan, math.nan, 0, 0)
-    return gap_closure(ref_sc, score(family, held, bare, blocks), norm)
+    return gap_closure(ref_sc, score_at(family, held, kept, f.effects[:-1], blocks), norm)
 
 
 OFF_TOLERANCE = 1e-3
