@@ -647,19 +647,15 @@ class _ToneOffsetOff(_ToneOffset):
         return [Param("offset.c", 0.0, -1.0, 1.0, "-", off=0.0)]
 
 
-def test_an_effect_its_own_fit_leaves_switched_off_is_not_credited_and_the_baseline_is_refitted(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    # A recalibration stuck in the wrong basin (nominal's lobe, 1.2 Hz for a rig at 0.93 Hz: what
-    # the browser test's effect-free rig once met) leaves a gap that a candidate refitting the
-    # baseline beside it closes with the effect at its off value. That GC is the baseline's: the
-    # baseline is refitted from there and the candidates judged against it.
+def _stuck_tone_diagnosis(family: Any, monkeypatch: pytest.MonkeyPatch) -> tuple[dict[str, Any], list[Any]]:
+    """A tone rig at 0.93 Hz diagnosed with the recalibration held at 1.2 Hz; the report and every candidate judged."""
     rng = np.random.default_rng(3)
     t = np.arange(0.0, 5.0, 0.01)
     exps = [Experiment(f"tone{k}", t, {"x": t}, {"y": np.sin(2.0 * np.pi * 0.93 * t) + rng.normal(0.0, 0.01, t.size)},
                        {}) for k in range(2)]
 
-    def stuck(family: Any, calib: list[Any], scales: Any = None, stop: Any = None) -> Any:
-        return core.fit(family, calib, (), scales=scales, starts=[{"a": 1.2}], stop=stop)
+    def stuck(fam: Any, calib: list[Any], scales: Any = None, stop: Any = None) -> Any:
+        return core.fit(fam, calib, (), scales=scales, starts=[{"a": 1.2}], stop=stop)
 
     singles: list[Any] = []
     real = core._evaluate
@@ -671,7 +667,16 @@ def test_an_effect_its_own_fit_leaves_switched_off_is_not_credited_and_the_basel
 
     monkeypatch.setattr(core, "recalibrate", stuck)
     monkeypatch.setattr(core, "_evaluate", kept)
-    r = diagnose(_ToneOffsetOff(), exps[:1], exps[1:])
+    return diagnose(family, exps[:1], exps[1:]), singles
+
+
+def test_an_effect_its_own_fit_leaves_switched_off_is_not_credited_and_the_baseline_is_refitted(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # A recalibration stuck in the wrong basin (nominal's lobe, 1.2 Hz for a rig at 0.93 Hz: what
+    # the browser test's effect-free rig once met) leaves a gap that a candidate refitting the
+    # baseline beside it closes with the effect at its off value. That GC is the baseline's: the
+    # baseline is refitted from there and the candidates judged against it.
+    r, singles = _stuck_tone_diagnosis(_ToneOffsetOff(), monkeypatch)
     first = singles[0]  # judged against the stuck reference
     assert first.fit.params["a"] == pytest.approx(0.93, abs=0.002)  # its refit found the rig
     assert abs(first.fit.params["offset.c"]) < 2e-3 and first.gap_closure > 0.9
@@ -690,25 +695,7 @@ def test_a_fit_whose_baseline_values_close_the_gap_without_its_effect_is_not_cre
     # The same stuck recalibration, and a candidate with no value at which it vanishes: the
     # switched-off rule cannot see it. Its fit with the effect taken out (the frequency it
     # refitted, no offset) closes the gap alone, so the baseline is refitted from there.
-    rng = np.random.default_rng(3)
-    t = np.arange(0.0, 5.0, 0.01)
-    exps = [Experiment(f"tone{k}", t, {"x": t}, {"y": np.sin(2.0 * np.pi * 0.93 * t) + rng.normal(0.0, 0.01, t.size)},
-                       {}) for k in range(2)]
-
-    def stuck(family: Any, calib: list[Any], scales: Any = None, stop: Any = None) -> Any:
-        return core.fit(family, calib, (), scales=scales, starts=[{"a": 1.2}], stop=stop)
-
-    singles: list[Any] = []
-    real = core._evaluate
-
-    def kept(*args: Any, **kw: Any) -> Any:
-        c = real(*args, **kw)
-        singles.append(c)
-        return c
-
-    monkeypatch.setattr(core, "recalibrate", stuck)
-    monkeypatch.setattr(core, "_evaluate", kept)
-    r = diagnose(_ToneOffset(), exps[:1], exps[1:])
+    r, singles = _stuck_tone_diagnosis(_ToneOffset(), monkeypatch)
     first = singles[0]  # judged against the stuck reference
     assert first.fit.params["a"] == pytest.approx(0.93, abs=0.002) and first.gap_closure > 0.9
     assert not first.switched_off and first.significant  # what used to be the verdict

@@ -958,10 +958,11 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     singles = [_evaluate(family, calib, held, base, base_sc, (c,), norm, blocks, scales, stop) for c in cands]
     beaten = _baseline_beaten(singles)
     if beaten is not None:
-        # A candidate fit closed the gap with its effect off: the baseline's own parameters,
-        # refitted beside it, did. Every effect would be judged against a reference that is not
-        # the baseline's best, so the baseline descends again from those values and, if that is
-        # cheaper, the candidates are judged against it instead (once: the report says so).
+        # A candidate fit's values closed the gap with its effect taken out (or left off): the
+        # baseline's own parameters, refitted beside it, did. Every effect would be judged against
+        # a reference that is not the baseline's best, so the baseline descends again from those
+        # values and, if that is cheaper, the candidates are judged against it instead (once: the
+        # report says so).
         again = fit(family, calib, (), scales=scales, starts=[base.params | beaten["baseline_params"]], stop=stop)
         beaten |= {"calibration_cost_before": base.rss, "calibration_cost_after": again.rss,
                    "rereferenced": again.rss < base.rss}
