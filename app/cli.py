@@ -335,7 +335,17 @@ def _diagnose(args: argparse.Namespace) -> int:
     """Diagnose the logs in ``args.logdir`` and print the verdict (issue 6)."""
     from app.engine.diagnosis.run import diagnose_dir
 
-    report = diagnose_dir(args.logdir, adapter=args.adapter, held_out=args.held_out)
+    bounds = {}
+    for text in args.bound:
+        name, eq, rng = text.partition("=")
+        lo, colon, hi = rng.partition(":")
+        try:
+            if not (eq and colon):
+                raise ValueError
+            bounds[name.strip()] = (float(lo), float(hi))
+        except ValueError:
+            raise ValueError(f"--bound {text!r}: expected NAME=LO:HI, e.g. dead_volume_scale=0.9:1.1") from None
+    report = diagnose_dir(args.logdir, adapter=args.adapter, held_out=args.held_out, bounds=bounds)
     if args.json_out:
         Path(args.json_out).write_text(json.dumps(report, indent=1))
     for name, r in (report["reports"].items() if "reports" in report else [("", report)]):
@@ -450,6 +460,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     g.add_argument("--held-out", nargs="*", default=None,
                    help="experiment names to withhold from fitting (default: the last third by name; "
                         "one experiment: its last 40 %%)")
+    g.add_argument("--bound", action="append", default=[], metavar="NAME=LO:HI",
+                   help="station logs: the recalibration's range for one baseline parameter, replacing the wide "
+                        "default (e.g. dead_volume_scale=0.9:1.1 for measured dead volumes); repeatable; the "
+                        "report lists every range under baseline.bounds")
     g.set_defaults(fn=_diagnose)
     q = sub.add_parser("protocol", help="run the diagnosis protocol on the simulated rig and write its logs")
     q.add_argument("outdir", help="directory for the logs (NAME.csv + NAME.json)")

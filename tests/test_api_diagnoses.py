@@ -25,6 +25,9 @@ def _join(client: TestClient, run_id: int) -> None:
     ({"protocol": {"errors": "every"}}, "errors", "'grouped' or 'each'"),
     ({"run_ids": [1, 2]}, "run_ids", "run 1 does not exist"),
     ({"protocol": {}, "held_out": ["hold-9"]}, "held_out", "no log of that name"),
+    ({"protocol": {}, "bounds": {"volume": [0.9, 1.1]}}, "bounds", "the baseline has no such parameter"),
+    ({"protocol": {}, "bounds": {"dead_volume_scale": [1.5, 2.0]}}, "bounds", "leaves out its nominal value 1"),
+    ({"protocol": {}, "bounds": {"gain_a": [0.9, 1.0, 1.1]}}, "bounds", ""),
 ])
 def test_bad_diagnosis_requests_are_refused_and_store_nothing(client: TestClient, body: dict, field: str,
                                                               words: str) -> None:
@@ -50,7 +53,7 @@ def test_the_protocol_table_is_served_from_the_engine(client: TestClient) -> Non
 @pytest.mark.slow
 def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestClient) -> None:
     r = client.post("/api/diagnoses", json={"protocol": {"effects": ["sensor_bias"], "magnitude": 2, "seed": 3,
-                                                          "scale": 0.4}})
+                                                          "scale": 0.4}, "bounds": {"gain_a": [0.9, 1.1]}})
     assert r.status_code == 202, r.text
     rid = r.json()["run_id"]
     _join(client, rid)
@@ -61,6 +64,7 @@ def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestCli
     assert run["metrics"]["effects_found"] == len(rep["verdict"]["effects"])
     assert run["metrics"]["e_after"] < run["metrics"]["e_before"]
     assert {"baseline", "ranking", "verdict", "where", "how_far"} <= set(rep)
+    assert rep["baseline"]["bounds"]["gain_a"] == [0.9, 1.1] and rep["baseline"]["bounds"]["gain_b"] == [0.8, 1.2]
     page = client.get("/static/diagnosis.html")
     assert page.status_code == 200 and "/api/diagnoses" in page.text
 

@@ -672,3 +672,48 @@ def test_every_parameter_off_by_its_own_error_stays_within_the_spread_and_physic
         run_case(None, seed=3, errors="per-entry")
     with pytest.raises(ValueError, match=r"friction_asymmetry = 0.7: outside its allowed range \[-0.5, 0.5\]"):
         run_case(None, seed=3, friction_asymmetry=0.7)
+
+
+def test_the_recalibrations_ranges_can_be_narrowed_and_a_bad_range_is_refused() -> None:
+    fam = RotaryFamily(bounds={"dead_volume_scale": (0.9, 1.1), "gain_a": (0.95, 1.05)})
+    specs = {p.name: p for p in fam.baseline()}
+    assert (specs["dead_volume_scale"].lo, specs["dead_volume_scale"].hi) == (0.9, 1.1)
+    assert (specs["gain_a"].lo, specs["gain_a"].hi) == (0.95, 1.05)
+    default = {p.name: p for p in RotaryFamily().baseline()}
+    assert specs["prv_c_scale"] == default["prv_c_scale"]  # the others keep the wide defaults
+    grid = {p.name: (p.lo, p.hi) for p in fam.base_grid}
+    assert grid["dead_volume_scale"] == (0.9, 1.1) and grid["prv_c_scale"] == (0.8, 1.25)  # the grid clipped
+    assert {p.name: (p.lo, p.hi) for p in RotaryFamily().base_grid}["dead_volume_scale"] == (0.8, 1.25)
+    for bounds, words in [({"dead_volume": (0.9, 1.1)}, "the baseline has no such parameter; known: prv_c_scale"),
+                          ({"gain_b": (1.1, 0.9)}, "1.1 … 0.9 is not a range"),
+                          ({"gain_b": (0.9, math.inf)}, "is not a range"),
+                          ({"dcv_c_scale": (0.0, 2.0)}, "its lower end must be above 0"),
+                          ({"dead_volume_scale": (1.5, 2.0)}, "leaves out its nominal value 1")]:
+        with pytest.raises(ValueError) as e:
+            RotaryFamily(bounds=bounds)
+        assert words in str(e.value), e.value
+
+
+@pytest.mark.slow
+def test_cwrr_diagnose_fits_within_the_ranges_it_is_given(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from app.cli import main
+
+    logs, out = tmp_path / "logs", tmp_path / "report.json"
+    assert main(["protocol", str(logs), "--param-error", "0.2", "--seed", "3", "--scale", "0.2"]) == 0
+    for bad, words in [("dead_volume_scale:0.9:1.1", "expected NAME=LO:HI"), ("dead_volume_scale=0.9", "NAME=LO:HI"),
+                       ("dead_volume_scale=a:b", "NAME=LO:HI"), ("volume=0.9:1.1", "no such parameter")]:
+        assert main(["diagnose", str(logs), "--json", str(out), "--bound", bad]) == 2
+        assert words in capsys.readouterr().err and not out.exists()
+    assert main(["diagnose", str(logs), "--adapter", "emps", "--bound", "gain_a=0.9:1.1"]) == 2
+    assert "bounds apply to the rotary rig's station logs" in capsys.readouterr().err
+    assert main(["diagnose", str(logs), "--json", str(out), "--bound", "dead_volume_scale=0.95:1.05",
+                 "--bound", "friction_scale=0.9:1.1"]) == 0
+    r = json.loads(out.read_text())
+    # the rig's dead volumes and friction are 0.84 and 0.83 × nominal (perturbed(3)): outside these
+    # ranges, so only the ranges hold the fits inside them
+    assert r["baseline"]["bounds"]["dead_volume_scale"] == [0.95, 1.05]
+    assert r["baseline"]["bounds"]["prv_c_scale"] == [0.3, 3.0]
+    fitted = r["baseline"]["identifiability"]["params"]
+    assert 0.95 <= fitted["dead_volume_scale"] <= 1.05 and 0.9 <= fitted["friction_scale"] <= 1.1
+    for c in r["ranking"]:  # a candidate refitting the baseline beside it keeps to the ranges too
+        assert 0.95 <= c["baseline_params"]["dead_volume_scale"] <= 1.05, c["effect"]

@@ -65,6 +65,11 @@ class DiagnosisRequest(BaseModel):
     protocol: ProtocolSource | None = None
     run_ids: list[Annotated[int, Field(ge=1, le=2**62)]] | None = Field(None, min_length=2, max_length=200)
     held_out: list[Annotated[str, Field(max_length=128)]] | None = Field(None, max_length=200)
+    bounds: dict[Annotated[str, Field(max_length=64)], tuple[float, float]] | None = Field(
+        None, max_length=16,
+        description="The recalibration's range [low, high] per baseline parameter of the rotary rig, replacing the "
+                    "wide default (e.g. {\"dead_volume_scale\": [0.9, 1.1]} for measured dead volumes); the report "
+                    "lists every range used under baseline.bounds")
 
 
 class DiagnosisStarted(BaseModel):
@@ -139,7 +144,7 @@ def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, source
             for src in sources:
                 for suffix in (".csv", ".json"):
                     shutil.copyfile(src.with_suffix(suffix), logdir / (src.stem + suffix))
-        report = diagnose_dir(logdir, adapter="station", held_out=req.held_out, stop=stop)
+        report = diagnose_dir(logdir, adapter="station", held_out=req.held_out, stop=stop, bounds=req.bounds)
         v = report["verdict"]
         hf = report["how_far"]
         # metrics are numbers (the runs table's contract); the verdict's names are in the report
@@ -196,6 +201,13 @@ def start(req: DiagnosisRequest, store: StoreDep, jobs: JobsDep, request: Reques
             raise ParameterError(f"held_out = {unknown[0]!r}: no log of that name; have {', '.join(sorted(names))}")
         if set(req.held_out) >= names:
             raise ParameterError("held_out: every log is held out; none is left to fit on")
+    if req.bounds:
+        from app.engine.diagnosis.rotary import RotaryFamily
+
+        try:
+            RotaryFamily.checked_bounds(req.bounds)
+        except ValueError as exc:
+            raise ParameterError(f"bounds: {exc}") from None
     busy = jobs.refusal()
     if busy:
         raise HTTPException(409, busy)

@@ -45,6 +45,7 @@ factors. Candidates: all nine of :data:`~app.engine.params.EFFECT_NAMES`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections import OrderedDict
@@ -276,6 +277,14 @@ class RotaryPrep:
     torque_cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
 
 
+def _clipped(p: Param, bound: tuple[float, float] | None, replace_range: bool = False) -> Param:
+    """``p`` with its range replaced by ``bound`` (``replace_range``) or clipped to it (a grid's)."""
+    if bound is None:
+        return p
+    lo, hi = bound if replace_range else (max(p.lo, bound[0]), min(p.hi, bound[1]))
+    return dataclasses.replace(p, lo=lo, hi=hi)
+
+
 class RotaryFamily:
     """Replay of station logs of the rotary rig (channels ``p_a``, ``p_b``, ``p_s`` [bar abs], ``torque`` [N·m]).
 
@@ -323,7 +332,21 @@ class RotaryFamily:
 
     def __init__(self, nominal: PlantParams | None = None, cutoff_hz: float = 10.0, substep_hz: float = 1000.0,
                  friction_speed_hz: float = 25.0, phase_kept_s: float = PHASE_KEPT_S,
-                 cycle_mean_s: float = CYCLE_MEAN_S) -> None:
+                 cycle_mean_s: float = CYCLE_MEAN_S, bounds: dict[str, tuple[float, float]] | None = None) -> None:
+        """Args:
+            bounds: The recalibration's range per baseline parameter, replacing
+                :meth:`baseline`'s (e.g. ``{"dead_volume_scale": (0.9, 1.1)}``
+                for a rig whose dead volumes were measured) [× nominal, or the
+                gain itself]; the range must hold the nominal value. The
+                recalibration's grid is clipped to it.
+
+        Raises:
+            ValueError: An unknown parameter, or a range that is empty, holds
+                no positive values for a log-space parameter, or leaves out the
+                nominal value.
+        """
+        self._bounds = self.checked_bounds(bounds or {})
+        self.base_grid = tuple(_clipped(p, self._bounds.get(p.name)) for p in type(self).base_grid)
         base = nominal or PlantParams()
         self.nominal = PlantParams(rig="rotary", vane=base.vane, friction=base.friction, prv=base.prv, dcv=base.dcv,
                                    supply=base.supply, sensors=base.sensors, human=HumanParams(0.0, 0.0, 1.0),
@@ -337,7 +360,32 @@ class RotaryFamily:
 
     # ------------------------------------------------------------------ parameters
 
+    @classmethod
+    def checked_bounds(cls, bounds: dict[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
+        """``bounds`` as the recalibration would take them (see ``__init__``), or ValueError naming the problem."""
+        specs = {p.name: p for p in cls._default_baseline()}
+        out = {}
+        for name, (lo, hi) in bounds.items():
+            if name not in specs:
+                raise ValueError(f"bound on {name!r}: the baseline has no such parameter; known: {', '.join(specs)}")
+            p = specs[name]
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ValueError(f"bound on {name}: {lo:g} … {hi:g} is not a range (the lower end must be below the "
+                                 "upper, both finite)")
+            if p.log and lo <= 0.0:
+                raise ValueError(f"bound on {name}: it is a scale fitted in log space, its lower end must be above 0 "
+                                 f"(got {lo:g})")
+            if not lo <= p.x0 <= hi:
+                raise ValueError(f"bound on {name}: {lo:g} … {hi:g} leaves out its nominal value {p.x0:g}, where the "
+                                 "recalibration starts")
+            out[name] = (float(lo), float(hi))
+        return out
+
     def baseline(self) -> list[Param]:
+        return [_clipped(p, self._bounds.get(p.name), replace_range=True) for p in self._default_baseline()]
+
+    @staticmethod
+    def _default_baseline() -> list[Param]:
         return [
             Param("prv_c_scale", 1.0, 0.3, 3.0, "-", log=True),
             Param("dcv_c_scale", 1.0, 0.3, 3.0, "-", log=True),

@@ -60,7 +60,8 @@ def split_last_third(exps: list[Experiment]) -> tuple[list[Experiment], list[Exp
 
 
 def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] | None = None,
-                 stop: threading.Event | None = None) -> dict[str, Any]:
+                 stop: threading.Event | None = None,
+                 bounds: dict[str, tuple[float, float]] | None = None) -> dict[str, Any]:
     """The report for the logs in ``logdir``.
 
     Args:
@@ -70,6 +71,14 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
         held_out: Experiment names withheld from fitting.
         stop: Once set, the diagnosis ends with
             :class:`~app.engine.diagnosis.core.Cancelled`.
+        bounds: The recalibration's range per baseline parameter of the
+            rotary rig (:class:`~app.engine.diagnosis.rotary.RotaryFamily`),
+            for station logs only; the report lists every range used under
+            ``baseline.bounds``.
+
+    Raises:
+        ValueError: ``bounds`` for an adapter's logs, or a bound the family
+            refuses (checked before any log is read).
 
     Returns:
         The report (one per chamber under ``"reports"`` for ``chamber_leak``,
@@ -79,6 +88,9 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     if not d.is_dir():
         raise LogFormatError(f"{d}: not a directory")
     kind = _detect(d) if adapter == "auto" else adapter
+    if bounds and kind != "station":
+        raise ValueError(f"bounds apply to the rotary rig's station logs; {d} holds {kind} logs, whose family has "
+                         "its own fixed ranges")
     if kind == "emps":
         exps = [read_emps(p) for p in sorted(d.glob("*.mat"))]
         calib, held = _split(exps, held_out)
@@ -89,13 +101,15 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
             a, b = split_time(read_chamber_leak(p))
             reports[p.stem] = diagnose(ChamberFamily(), [a], [b], protocol=PROTOCOL, stop=stop)
         return {"adapter": "chamber_leak", "reports": reports}
+    family = RotaryFamily(bounds=bounds)  # refuses a bad bound before the logs are read
     exps = read_logdir(d)  # refuses malformed logs with the problem named
     linear = [e.name for e in exps if e.meta["rig"] != "rotary"]
     if linear:
         raise LogFormatError(f"{d}: {', '.join(linear)} come from the linear rig; the replay family covers "
                              "the rotary rig (diagnose linear-rig logs in a directory of their own once it does)")
     calib, held, why = _split_station(exps, held_out)
-    report = diagnose(RotaryFamily(), calib, held, protocol=PROTOCOL, stop=stop)
+    report = diagnose(family, calib, held, protocol=PROTOCOL, stop=stop)
+    report["baseline"]["bounds"] = {p.name: [p.lo, p.hi] for p in family.baseline()}
     report["experiments"]["split"] = why
     # what each log gave the fit to learn from (the regimes the split weighs)
     report["experiments"]["excites"] = {e.name: sorted(excites(e)) for e in exps}
