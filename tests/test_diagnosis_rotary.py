@@ -687,7 +687,8 @@ def test_the_recalibrations_ranges_can_be_narrowed_and_a_bad_range_is_refused() 
     for bounds, words in [({"dead_volume": (0.9, 1.1)}, "the baseline has no such parameter; known: prv_c_scale"),
                           ({"gain_b": (1.1, 0.9)}, "1.1 … 0.9 is not a range"),
                           ({"gain_b": (0.9, math.inf)}, "is not a range"),
-                          ({"dcv_c_scale": (0.0, 2.0)}, "its lower end must be above 0"),
+                          ({"dcv_c_scale": (0.0, 2.0)}, "0 … 2 reaches outside the default range 0.3 … 3"),
+                          ({"dead_volume_scale": (0.9, 6.0)}, "which a bound may only narrow"),
                           ({"dead_volume_scale": (1.5, 2.0)}, "leaves out its nominal value 1")]:
         with pytest.raises(ValueError) as e:
             RotaryFamily(bounds=bounds)

@@ -337,13 +337,14 @@ class RotaryFamily:
             bounds: The recalibration's range per baseline parameter, replacing
                 :meth:`baseline`'s (e.g. ``{"dead_volume_scale": (0.9, 1.1)}``
                 for a rig whose dead volumes were measured) [× nominal, or the
-                gain itself]; the range must hold the nominal value. The
+                gain itself]; the range must lie within the default and hold
+                the nominal value. The
                 recalibration's grid is clipped to it.
 
         Raises:
-            ValueError: An unknown parameter, or a range that is empty, holds
-                no positive values for a log-space parameter, or leaves out the
-                nominal value.
+            ValueError: An unknown parameter, or a range that is empty,
+                reaches outside the default range, or leaves out the nominal
+                value.
         """
         self._bounds = self.checked_bounds(bounds or {})
         self.base_grid = tuple(_clipped(p, self._bounds.get(p.name)) for p in type(self).base_grid)
@@ -372,9 +373,10 @@ class RotaryFamily:
             if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
                 raise ValueError(f"bound on {name}: {lo:g} … {hi:g} is not a range (the lower end must be below the "
                                  "upper, both finite)")
-            if p.log and lo <= 0.0:
-                raise ValueError(f"bound on {name}: it is a scale fitted in log space, its lower end must be above 0 "
-                                 f"(got {lo:g})")
+            if lo < p.lo or hi > p.hi:
+                # beyond them the replay leaves the physics it was checked on (a chamber of no volume)
+                raise ValueError(f"bound on {name}: {lo:g} … {hi:g} reaches outside the default range "
+                                 f"{p.lo:g} … {p.hi:g}, which a bound may only narrow")
             if not lo <= p.x0 <= hi:
                 raise ValueError(f"bound on {name}: {lo:g} … {hi:g} leaves out its nominal value {p.x0:g}, where the "
                                  "recalibration starts")
