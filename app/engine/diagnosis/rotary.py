@@ -277,12 +277,11 @@ class RotaryPrep:
     torque_cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
 
 
-def _clipped(p: Param, bound: tuple[float, float] | None, replace_range: bool = False) -> Param:
-    """``p`` with its range replaced by ``bound`` (``replace_range``) or clipped to it (a grid's)."""
+def _clipped(p: Param, bound: tuple[float, float] | None) -> Param:
+    """``p`` with its range clipped to ``bound`` (a checked bound lies within the default: there, it is the bound)."""
     if bound is None:
         return p
-    lo, hi = bound if replace_range else (max(p.lo, bound[0]), min(p.hi, bound[1]))
-    return dataclasses.replace(p, lo=lo, hi=hi)
+    return dataclasses.replace(p, lo=max(p.lo, bound[0]), hi=min(p.hi, bound[1]))
 
 
 class RotaryFamily:
@@ -338,8 +337,7 @@ class RotaryFamily:
                 :meth:`baseline`'s (e.g. ``{"dead_volume_scale": (0.9, 1.1)}``
                 for a rig whose dead volumes were measured) [× nominal, or the
                 gain itself]; the range must lie within the default and hold
-                the nominal value. The
-                recalibration's grid is clipped to it.
+                the nominal value. The recalibration's grid is clipped to it.
 
         Raises:
             ValueError: An unknown parameter, or a range that is empty,
@@ -384,7 +382,7 @@ class RotaryFamily:
         return out
 
     def baseline(self) -> list[Param]:
-        return [_clipped(p, self._bounds.get(p.name), replace_range=True) for p in self._default_baseline()]
+        return [_clipped(p, self._bounds.get(p.name)) for p in self._default_baseline()]
 
     @staticmethod
     def _default_baseline() -> list[Param]:
