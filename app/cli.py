@@ -302,6 +302,8 @@ def _serve(args: argparse.Namespace) -> int:
         settings = Settings(host=args.host, port=args.port, viser_port=args.viser_port, **extra)
     except ValidationError as exc:
         raise ValueError(validation_reasons(exc, "settings")) from None
+    if settings.start_engine and settings.auto_connect and _compile_first() != 0:
+        return 130
     if settings.realtime:
         from app.engine.loop import make_server_realtime
 
@@ -310,6 +312,30 @@ def _serve(args: argparse.Namespace) -> int:
         if why:
             print(f"cwrr serve: normal scheduling ({why}); /api/health reports the loop's jitter", file=sys.stderr)
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
+    return 0
+
+
+def _compile_first() -> int:
+    """Compile the engine's kernels before the server starts, if this version has not yet; 130 if interrupted.
+
+    Otherwise the lifespan's connect would compile them (about a minute on
+    the 2-core station, once per version): uvicorn acts on a SIGTERM or
+    Ctrl-C only after its startup ends, so a stop asked for meanwhile waited
+    that long. Here nothing has started yet, and a signal ends the process
+    at once.
+    """
+    from app.engine.warm import cold, warm
+
+    if not cold(["sim"]):
+        return 0
+    print("cwrr serve: compiling the simulator and controllers for this version (once; about a minute "
+          "on two cores) ...", file=sys.stderr, flush=True)
+    try:
+        took = warm(["sim"])
+    except KeyboardInterrupt:
+        print("cwrr serve: stopped while compiling", file=sys.stderr)
+        return 130
+    print(f"cwrr serve: compiled in {took['sim']:.0f} s", file=sys.stderr, flush=True)
     return 0
 
 

@@ -4,6 +4,12 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -285,6 +291,58 @@ def test_the_warm_up_runs_its_parts_and_refuses_an_unknown_one(capsys: pytest.Ca
     assert set(warm(["replay"])) == {"replay"} and set(PARTS) == {"sim", "replay"}
     assert main(["sim"]) == 0 and "compiled: sim" in capsys.readouterr().out
     assert main(["all"]) == 2 and "no warm-up part all; known: sim, replay" in capsys.readouterr().err
+
+
+def test_a_part_that_ran_to_its_end_marks_the_cache_warm(monkeypatch: pytest.MonkeyPatch,
+                                                          tmp_path: Path) -> None:
+    """What ``cwrr serve`` asks before it starts: a part is cold until it has run against this
+    cache directory (keyed by the sources' hash), and a part that failed stays cold."""
+    from app.engine import warm as w
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    monkeypatch.setitem(w.PARTS, "ok", lambda: None)
+
+    def broken() -> None:
+        raise RuntimeError("compile failed")
+
+    monkeypatch.setitem(w.PARTS, "broken", broken)
+    assert w.cold(["ok", "broken"]) == ["ok", "broken"]
+    w.warm(["ok"])
+    with pytest.raises(RuntimeError, match="compile failed"):
+        w.warm(["broken"])
+    assert w.cold(["ok", "broken"]) == ["broken"]
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "another version"))
+    assert w.cold(["ok"]) == ["ok"]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_stop_asked_for_while_the_first_start_compiles_ends_cwrr_serve_at_once(
+        tmp_path: Path, sig: signal.Signals) -> None:
+    """A version's first ``cwrr serve`` compiles the engine's kernels (about a minute); it did so
+    inside uvicorn's startup, which acts on a signal only once it ends, so a stop (``docker stop``,
+    Ctrl-C) waited out the compile. It now compiles before the server starts, where a stop ends it."""
+    from tests.conftest import ServedStation, free_port
+
+    env = dict(os.environ, PYTHONPATH=str(ServedStation.ROOT), NUMBA_CACHE_DIR=str(tmp_path / "cold cache"))
+    env.pop("CWRR_DATA_DIR", None)
+    proc = subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", str(free_port()), "--viser-port", "0",
+                             "--data-dir", str(tmp_path / "data")], cwd=ServedStation.ROOT, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()  # blocks until the first line: imports take a few seconds
+        assert "compiling the simulator and controllers for this version" in line, line
+        time.sleep(1.0)  # into the compile
+        proc.send_signal(sig)
+        rc = proc.wait(timeout=5.0)
+    finally:
+        proc.kill()
+    rest = proc.stderr.read()
+    if sig == signal.SIGINT:
+        assert rc == 130 and "stopped while compiling" in rest, (rc, rest)
+    else:
+        assert rc == -signal.SIGTERM, (rc, rest)
+    assert not (tmp_path / "cold cache" / "warm-sim.done").exists()
 
 
 class _ManualClock:

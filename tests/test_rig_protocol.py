@@ -35,7 +35,8 @@ def _run(outdir: Path, rig: PlantParams, **kw: Any) -> tuple[ProtocolProcedure, 
 def test_the_protocol_through_the_engine_writes_station_logs_that_find_a_withheld_leak(tmp_path: Path) -> None:
     """Through read → control → safety → write on a simulated rig with a chamber leak: one log per
     experiment and repetition in the station's format, opening at rest (PRVs at the start pressure,
-    DCVs shut) for PREROLL_S, with the commands the backend applied; diagnosed, they name the leak."""
+    DCVs shut, the user relaxed wherever static friction stopped the handle) for PREROLL_S, with the
+    commands the backend applied; diagnosed, they name the leak."""
     rig = PlantParams().with_effects(external_leakage=MAGNITUDES["external_leakage"][1])
     proc, logs = _run(tmp_path, rig, repetitions=2, scale=0.4, kinds=["hold_closed", "fill_shut"])
     assert proc.progress.state == "finished" and proc.progress.done_tests == 4
@@ -51,6 +52,9 @@ def test_the_protocol_through_the_engine_writes_station_logs_that_find_a_withhel
         assert np.all(e.inputs["z_a"][rest] == e.inputs["z_a"][0])
         # the chambers reached the start pressure before the log opened
         assert abs(e.channels["p_a"][0] - e.meta["working_pressure_bar"]) < 0.1
+        # and the user holds the handle without pressing on it (pressing on at the angle where the
+        # arm's pull stopped short of neutral, later logs had opened with ≈ 1 N·m on a stuck handle)
+        assert abs(np.mean(e.channels["torque"][rest])) < 0.1, p.stem
     r = diagnose_dir(tmp_path)
     assert r["verdict"]["effects"] == ["external_leakage"]
     assert r["experiments"]["held_out"] == ["fill_shut-2", "hold_closed-2"]

@@ -6,8 +6,14 @@ about 50 s for the simulator (the plant inlined into its loops) and 35 s for
 the diagnosis replay. Whoever meets that first waits: the first
 ``cwrr serve`` answers its health check only after it, and every test
 process that starts at the same time compiles a copy of its own. So the
-Docker image runs this at build time, and ``./dev test`` runs its parts
-beside ruff and mypy before the tests start.
+Docker image runs this at build time, ``./dev test`` runs its parts
+beside ruff and mypy before the tests start, and ``cwrr serve`` runs the
+``sim`` part itself when it is cold, before the server starts (see
+:func:`cold`).
+
+A part that ran to its end leaves a marker in the cache directory, so
+whoever comes next can tell a warm cache from a cold one without
+compiling anything.
 
 Parts (each compiles what its workloads call; given several, each runs in a
 process of its own, so that they compile on several cores at once):
@@ -22,10 +28,12 @@ process of its own, so that they compile on several cores at once):
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 
 def _sim() -> None:
@@ -77,6 +85,21 @@ PARTS: dict[str, Callable[[], None]] = {"sim": _sim, "replay": _replay}
 """Part name → what it runs."""
 
 
+def _marker(part: str) -> Path | None:
+    """The file that says ``part`` ran to its end against this cache (None: no cache directory set)."""
+    cache = os.environ.get("NUMBA_CACHE_DIR")  # set on importing app, keyed by the sources' hash
+    return Path(cache) / f"warm-{part}.done" if cache else None
+
+
+def cold(parts: Sequence[str] = tuple(PARTS)) -> list[str]:
+    """The parts of ``parts`` that have not run against the current kernel cache.
+
+    The cache directory is keyed by a hash of the sources (:mod:`app`), so
+    after any change to the code every part is cold again.
+    """
+    return [p for p in parts if (m := _marker(p)) is None or not m.exists()]
+
+
 def warm(parts: Sequence[str] = tuple(PARTS)) -> dict[str, float]:
     """Run ``parts``, one process each when there are several; the compiled kernels land in the on-disk cache.
 
@@ -96,6 +119,8 @@ def warm(parts: Sequence[str] = tuple(PARTS)) -> dict[str, float]:
     if len(parts) == 1:
         t = time.perf_counter()
         PARTS[parts[0]]()
+        if (m := _marker(parts[0])) is not None:
+            m.touch()
         return {parts[0]: time.perf_counter() - t}
     # one process per part: numba compiles on one core per process, and the parts share nothing
     t = time.perf_counter()

@@ -11,7 +11,8 @@ experiment becomes one log in the station's format, written as
 
 Per experiment: the PRVs bring both chambers to its start pressure through
 the DCVs (:data:`PRESSURISE_S`, longer while a simulated user brings the
-handle back to neutral), then the log opens with :data:`~app.engine.diagnosis.protocol.PREROLL_S`
+handle back to neutral, and :data:`RELAX_S` for it to relax where the
+handle stopped), then the log opens with :data:`~app.engine.diagnosis.protocol.PREROLL_S`
 at rest (PRVs holding that pressure, DCVs shut at 5 V) and the schedule's
 commands follow. The isotonic experiment is closed-loop, as in
 :func:`~app.engine.diagnosis.protocol.run_protocol`: its log opens at the
@@ -32,6 +33,8 @@ import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from app.engine.constants import BAR, P_ATM
 from app.engine.control.config import ControllerConfig
@@ -56,6 +59,9 @@ KINDS: tuple[str, ...] = tuple(VISIBLE)
 
 PRESSURISE_S = 1.5
 """Both chambers at the experiment's start pressure before its log opens [s] (as a workout starts)."""
+
+RELAX_S = 0.3
+"""A simulated user's time to relax where the handle stopped, before the log opens [s]."""
 
 _PROMPT = {
     "friction_sweep": "please move the handle back and forth, slowly, then faster, then fast",
@@ -206,6 +212,16 @@ class ProtocolProcedure(Procedure):
                 self.set_program(HumanProgram.move(theta, 0.0, self.meas.t))
                 pressurise = max(PRESSURISE_S, HumanProgram.move_time(theta, 0.0) + 0.5)
             yield from self.hold(Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b), pressurise)
+            rest_at = 0.0
+            if self.set_program is not None:
+                # The arm's pull stops short of neutral where static friction holds the handle
+                # (≈ 0.06 rad at 20 N·m/rad); a user asked to hold still then relaxes there
+                # instead of pressing on, and the experiment runs about that angle. Pressing on,
+                # every log but the first had opened with 1.1–1.3 N·m on a stuck handle.
+                rest_at = self.meas.theta
+                self.set_program(HumanProgram(np.array([self.meas.t, self.meas.t + RELAX_S]),
+                                              np.array([0.0, rest_at])))
+                yield from self.hold(Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b), RELAX_S)
             name = f"{kind}-{rep + 1}"
             meta = {**self.meta, "rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": self.p_atm_bar,
                     "working_pressure_bar": pw, "experiment": kind, "human": s.human if s is not None else True,
@@ -215,7 +231,7 @@ class ProtocolProcedure(Procedure):
             t0 = self.meas.t
             prog = s.program if s is not None else isotonic_program(rep)
             if self.set_program is not None:  # programs run on rig time, from the log's start
-                self.set_program(HumanProgram(prog.t + t0, prog.pos))
+                self.set_program(HumanProgram(prog.t + t0, prog.pos + rest_at))
             try:
                 if s is None:  # the isotonic workout: the Default controller while the user pushes
                     ctl = InteractionController(ControllerConfig(controller="default", pw_bar=pw))
