@@ -150,6 +150,14 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
     ser = client.get(f"/api/runs/{run_id}/series", params={"every": 10}).json()
     full = client.get(f"/api/runs/{run_id}/series").json()
     assert ser["columns"][0] == "t" and len(ser["rows"]) == -(-len(full["rows"]) // 10)
+    n = full["rows_total"]
+    assert n == len(full["rows"]) and ser["rows_total"] == n and full["every"] == 1
+    # a plot asks for what it can draw: every is raised to fit, never lowered
+    fit = client.get(f"/api/runs/{run_id}/series", params={"max_rows": 300}).json()
+    assert fit["every"] == -(-n // 300) and len(fit["rows"]) <= 300 and fit["rows"] == full["rows"][::fit["every"]]
+    assert client.get(f"/api/runs/{run_id}/series", params={"max_rows": 300, "every": 50}).json()["every"] == 50
+    bad = client.get(f"/api/runs/{run_id}/series", params={"max_rows": 1})
+    assert bad.status_code == 422 and bad.json()["detail"][0]["loc"] == ["query", "max_rows"]
     # pressurise 1.5 s, engage at 1 s, 90° at 0.3 rad/s = 5.2 s, return: > 8 s; the stored
     # workout's 90° (not the default 120°, 7 s) sets the length. The run is paced on the wall
     # clock, and a loop that falls behind skips periods rather than bursting (loop.Engine), so on
@@ -158,6 +166,15 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
     span = full["rows"][-1][0] - full["rows"][0][0]
     assert 8.0 < span < 11.5
     assert 0.8 * 200 * span < len(full["rows"]) <= 200 * span + 2  # + the first, partial period
+    # the window counts from the program's start, after pressurising; program_start_s puts it on the
+    # log's clock (what a plot of the run shades), where the torque inside it scores the stored MAE
+    res = run["result"]
+    a = np.asarray(full["rows"])
+    start = res["program_start_s"]
+    assert a[0, 0] + 1.4 < start < a[0, 0] + 1.7  # the run pressurises 1.5 s first
+    w0, w1 = (x + start for x in res["window_s"])
+    inside = (a[:, 0] >= w0) & (a[:, 0] <= w1)
+    assert np.mean(np.abs(1.2 - a[inside, -1])) == pytest.approx(m["mae"], rel=0.05)
     csv = client.get(f"/api/runs/{run_id}/export", params={"fmt": "csv"})
     assert csv.status_code == 200 and csv.text.startswith("t,z_a,z_b")
     mat = client.get(f"/api/runs/{run_id}/export", params={"fmt": "mat"})

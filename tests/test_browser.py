@@ -165,6 +165,20 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     row = page.locator("#runs tbody tr").first
     expect(row).to_contain_text("P-007")
     run_id = int(row.get_attribute("data-run") or 0)
+    # the whole exercise stays on the page once the live chart has moved on: torque against target,
+    # from the stored run, decimated to what the chart can draw
+    trace = page.locator("#c-trace")
+    expect(trace).to_be_visible(timeout=5000)
+    expect(trace).to_have_attribute("data-run", str(run_id))
+    with urllib.request.urlopen(f"{base}/api/runs/{run_id}/series?every=10000", timeout=10) as r:
+        stored = json.loads(r.read())["rows_total"]
+    every = -(-stored // 1800)
+    assert int(trace.get_attribute("data-samples") or 0) == len(range(0, stored, every)), stored
+    # the scored window it tints is the stored result's, moved onto the log's clock
+    with urllib.request.urlopen(f"{base}/api/runs/{run_id}", timeout=10) as r:
+        res = json.loads(r.read())["result"]
+    tinted = [float(x) for x in (trace.get_attribute("data-window") or "").split(",")]
+    assert tinted == pytest.approx([x + res["program_start_s"] for x in res["window_s"]], abs=1e-3), (tinted, res)
     with urllib.request.urlopen(f"{base}/api/sessions/{session_id}", timeout=10) as r:
         assert json.loads(r.read())["runs"] == [run_id]
     expect(page.locator("#session option:checked")).to_contain_text("(1 run)")
@@ -221,9 +235,12 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     page.unroute("**/api/runs?kind=workout*")
     # a run picked in the history shows its result where the last one shows, fetched from the store
     page.evaluate("document.getElementById('last').textContent = ''")
+    page.evaluate("(() => { const c = document.getElementById('c-trace'); c.hidden = true; c.dataset.run = ''; })()")
     page.locator("#runs tbody tr").first.locator("td").nth(2).click()
     expect(page.locator("#last")).to_contain_text("Exercise ")
     expect(page.locator("#runs tbody tr").first).to_have_class("shown")
+    expect(trace).to_be_visible()
+    expect(trace).to_have_attribute("data-run", str(run_id))
     assert float(page.locator("#metrics tr").first.locator("td").nth(1).inner_text()) == pytest.approx(mae, rel=1e-3)
 
     # issue 7: the emergency stop is always there and always enabled; it latches until cleared

@@ -415,11 +415,13 @@ class Series(BaseModel):
         columns: Column names (the run-log format: s, V, bar, rad, rad/s, N·m).
         rows: Samples.
         every: Decimation factor applied.
+        rows_total: Samples stored (before decimation).
     """
 
     columns: list[str]
     rows: list[list[float]]
     every: int
+    rows_total: int
 
 
 class ParamSetIn(BaseModel):

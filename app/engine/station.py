@@ -910,8 +910,10 @@ class Station:
                 m, window, t_on = score_case(job.spec.case, a[:, 0], a[:, 1], a[:, 2], job.t_end, job.t_d,
                                              job.spec.settings)
                 w_end = min(window[1], float(a[-1, 0]))
+                # the window and the engagement count from the program's start (after pressurising);
+                # program_start_s puts them on the run log's clock, where a plot of the run needs them
                 result = {"window_s": [window[0], w_end], "t_engage_s": t_on if math.isfinite(t_on) else None,
-                          "partial": w_end < window[1]}
+                          "partial": w_end < window[1], "program_start_s": job.t_prog}
                 if w_end - window[0] >= MIN_PARTIAL_WINDOW_S:
                     metrics = m  # a stopped run is scored over the part of the window it reached
                 else:

@@ -82,9 +82,14 @@ def edit_notes(run_id: IdPath, body: NotesIn, store: StoreDep) -> RunInfo:
 
 @router.get("/{run_id}/series", response_model=Series, responses=NOT_FOUND,
             summary="Time series, every n-th sample")
-def series(run_id: IdPath, store: StoreDep, every: int = Query(1, ge=1, le=10000)) -> Series:
+def series(run_id: IdPath, store: StoreDep, every: int = Query(1, ge=1, le=10000),
+           max_rows: Annotated[int | None, Query(ge=2, le=10**7, description=(
+               "At most this many rows: ``every`` is raised as far as needed (a plot of a run of "
+               "any length asks for what it can draw)"))] = None) -> Series:
     cols, data = _load(_get(store, run_id))
-    return Series(columns=cols, rows=data[::every].tolist(), every=every)
+    if max_rows is not None:
+        every = max(every, -(-len(data) // max_rows))
+    return Series(columns=cols, rows=data[::every].tolist(), every=every, rows_total=len(data))
 
 
 FILES: dict[int | str, dict[str, Any]] = {
