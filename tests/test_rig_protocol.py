@@ -60,6 +60,44 @@ def test_the_protocol_through_the_engine_writes_station_logs_that_find_a_withhel
     assert r["experiments"]["held_out"] == ["fill_shut-2", "hold_closed-2"]
 
 
+class _LateClock(SimClock):
+    """A loaded station's clock: 10 % of periods start up to 15 ms late, 1 % of them 50 ms late."""
+
+    def __init__(self, seed: int) -> None:
+        super().__init__()
+        self.rng = np.random.default_rng(seed)
+
+    def sleep_until(self, t: float) -> None:
+        u = self.rng.uniform()
+        super().sleep_until(t + (0.05 if u < 0.01 else self.rng.uniform(0.0, 0.015) if u < 0.11 else 0.0))
+
+
+def test_logs_of_a_loop_that_runs_late_read_the_sensors_noise_as_the_sensors_make_it(tmp_path: Path) -> None:
+    """The noise floor comes from the samples as measured, not from the uniform grid the replay puts a
+    log with late periods on: there, a grid point between two late samples is their interpolation,
+    whose noise is partly averaged away, and the pressures' noise had read 26 % low (every gap
+    measured against it that much larger). The same experiments on a loop that keeps time read the
+    same noise within 10 %."""
+    from app.engine.diagnosis.logs import sampling_irregularity
+    from app.engine.diagnosis.rotary import RotaryFamily
+
+    fam = RotaryFamily()
+    noise: dict[str, dict[str, dict[str, float]]] = {}
+    for name, clock in (("on time", SimClock()), ("late", _LateClock(3))):
+        backend = SimulatedRig(clock, PlantParams(), seed=5, period=0.005)
+        proc = ProtocolProcedure(tmp_path / name, set_program=backend.set_program, repetitions=1, scale=0.4,
+                                 kinds=["prv_steps", "friction_sweep"])
+        run_procedure(proc, backend, clock, 200.0, recorder=proc)
+        logs = [read_log(p) for p in proc.finish_logs()]
+        assert all((sampling_irregularity(e.t) is not None) == (name == "late") for e in logs)
+        noise[name] = {e.name: fam.noise(fam.prepare(e)) for e in logs}
+    for log, steady in noise["on time"].items():
+        for c in ("p_a", "p_b", "p_s", "torque"):
+            assert noise["late"][log][c] == pytest.approx(steady[c], rel=0.1), (log, c, noise)
+        # the supply's pressure is flat: its estimate is the sensor's own noise
+        assert steady["p_s"] == pytest.approx(PlantParams().sensors.pressure_noise_bar, rel=0.1)
+
+
 def test_the_isotonic_experiment_through_the_engine_is_the_simulated_protocols_workout(tmp_path: Path) -> None:
     """The closed-loop experiment: the Default controller on the station's loop, the same push by the
     user, the same motion and torque as the batch protocol's (run_protocol) within a milliradian."""

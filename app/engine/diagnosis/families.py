@@ -170,6 +170,7 @@ class DriveFamily:
         raise ValueError(f"drive family: no effect {name!r}")
 
     def prepare(self, exp: Experiment) -> _DrivePrep:
+        measured = exp.channels["force"]  # its noise as measured (interpolation averages it away)
         exp = on_uniform_grid(exp)
         dt = exp.dt
         b, a = butter(4, self.cutoff_hz / (0.5 / dt))
@@ -188,7 +189,7 @@ class DriveFamily:
         # the floor: the raw force's white noise (robust estimate) passed through the same
         # zero-phase filter (measured on a fixed unit-variance sequence, not approximated)
         unit = filtfilt(b, a, np.random.default_rng(0).standard_normal(min(len(q), 20000)))
-        noise = white_noise_sd(f_raw) * float(np.std(unit[edge:-edge]))
+        noise = white_noise_sd(measured) * float(np.std(unit[edge:-edge]))
         return _DrivePrep(v[k], acc[k], f[k], exp.inputs.get("q_ref", q)[k], noise, v, (b, a), k)
 
     def measured(self, prep: _DrivePrep) -> dict[str, np.ndarray]:
