@@ -526,6 +526,15 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#detail")).to_contain_text(
         "Or friction_per_direction (friction off per direction) instead of sensor_bias: these logs cannot tell them "
         "apart (gap closure 0.650 against 0.660 for sensor_bias). To tell: tare the sensors.")
+    # the station's page shows the protocol's run with a link that takes its experiments' runs here
+    page.goto(base)
+    page.locator("#runs tbody tr", has_text="Diagnosis protocol on the rig").first.locator("td").nth(2).click()
+    expect(page.locator("#last")).to_contain_text(f"Diagnosis protocol {proto['id']}: finished")
+    ids = ", ".join(str(i) for i in proto["result"]["run_ids"])
+    page.click("#diagnose-runs")
+    expect(page.locator("#runids")).to_have_value(ids)
+    expect(page.locator("#src")).to_have_value("runs")
+    expect(page.locator("#runs")).to_be_visible()
     assert not errors, errors
 
 
