@@ -48,6 +48,12 @@ def test_the_protocol_table_is_served_from_the_engine(client: TestClient) -> Non
     assert {x for e in t["experiments"] for x in e["makes_visible"]} == set(EFFECT_NAMES)
     assert all(e["description"] for e in t["experiments"]) and t["preroll_s"] == PREROLL_S
     assert t["candidates"] == list(EFFECT_NAMES)  # the page's check boxes, in the library's order
+    # the recalibration's parameters and default ranges, which the page offers to narrow
+    from app.engine.diagnosis.rotary import RotaryFamily
+
+    assert [(b["name"], b["low"], b["nominal"], b["high"]) for b in t["baseline"]] == [
+        (s.name, s.lo, s.x0, s.hi) for s in RotaryFamily().baseline()]
+    assert {b["name"]: b["meaning"] for b in t["baseline"]}["dead_volume_scale"] == "chamber dead volumes × nominal"
 
 
 @pytest.mark.slow

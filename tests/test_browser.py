@@ -421,10 +421,27 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     page.route("**/api/diagnoses", refuse)
     page.check("#effects input[value=heat_transfer]")
     page.select_option("#errs", "each")
+    # a range measured on the rig narrows the recalibration's (the engine's parameters and defaults);
+    # one that reaches beyond the default is refused on the page, before anything runs
+    page.click("#ranges summary")
+    expect(page.locator("#range-rows")).to_contain_text("chamber dead volumes × nominal (default 0.200 … 5.00")
+    page.fill("[data-bound=friction_scale][data-end='1']", "5")
+    page.click("#go")
+    expect(page.locator("#msg")).to_contain_text(
+        "bound on friction_scale: 0.300 … 5.00 reaches outside the default range 0.300 … 3.00")
+    assert sent == []
+    page.fill("[data-bound=friction_scale][data-end='1']", "")
+    page.fill("[data-bound=dead_volume_scale][data-end='0']", "0.9")
+    page.fill("[data-bound=dead_volume_scale][data-end='1']", "1.1")
+    page.fill("[data-bound=gain_a][data-end='1']", "1.05")  # the other end stays the default's
     page.click("#go")
     expect(page.locator("#msg")).to_contain_text("not now (test)")
     assert sent == [{"protocol": {"effects": ["heat_transfer"], "magnitude": 2, "param_error": 0.2,
-                                  "errors": "each", "seed": 0, "scale": 1}}], sent
+                                  "errors": "each", "seed": 0, "scale": 1},
+                     "bounds": {"dead_volume_scale": [0.9, 1.1], "gain_a": [0.8, 1.05]}}], sent
+    for end in ("0", "1"):
+        page.fill(f"[data-bound=dead_volume_scale][data-end='{end}']", "")
+    page.fill("[data-bound=gain_a][data-end='1']", "")
     page.unroute("**/api/diagnoses")
     page.select_option("#src", "files")
     expect(page.locator("#logfiles")).to_be_visible()

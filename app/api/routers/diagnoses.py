@@ -98,6 +98,24 @@ class ProtocolExperiment(BaseModel):
     makes_visible: list[EffectName]
 
 
+class BaselineRange(BaseModel):
+    """A baseline parameter the recalibration fits, with its default range (``bounds`` may narrow it).
+
+    Attributes:
+        name: Parameter name (a key of ``bounds``).
+        meaning: What it scales.
+        nominal: Where the recalibration starts (the simulator's nominal rig) [× nominal, or the gain].
+        low: Default lower end.
+        high: Default upper end.
+    """
+
+    name: str
+    meaning: str
+    nominal: float
+    low: float
+    high: float
+
+
 class ProtocolTable(BaseModel):
     """The diagnosis protocol (issue 6 §6): every experiment is run twice; the second run of each is held out.
 
@@ -105,11 +123,13 @@ class ProtocolTable(BaseModel):
         experiments: In the order the station runs them.
         preroll_s: Rest logged before each open-loop experiment's first step [s].
         candidates: The candidate effects the diagnosis tries (and a simulated rig can have switched on).
+        baseline: The rotary rig's recalibrated parameters and their default ranges.
     """
 
     experiments: list[ProtocolExperiment]
     preroll_s: float
     candidates: list[EffectName]
+    baseline: list[BaselineRange]
 
 
 log = logging.getLogger(__name__)
@@ -119,12 +139,15 @@ log = logging.getLogger(__name__)
             summary="The diagnosis protocol: each experiment and the effects it makes visible")
 def protocol_table() -> ProtocolTable:
     from app.engine.diagnosis.protocol import DESCRIPTION, PREROLL_S, VISIBLE
+    from app.engine.diagnosis.rotary import RotaryFamily
     from app.engine.params import EFFECT_NAMES
 
     # validated against EffectName: an engine table naming an unknown effect fails here, not in the page
     return ProtocolTable.model_validate({
         "experiments": [{"name": k, "description": DESCRIPTION[k], "makes_visible": v} for k, v in VISIBLE.items()],
-        "preroll_s": PREROLL_S, "candidates": list(EFFECT_NAMES)})
+        "preroll_s": PREROLL_S, "candidates": list(EFFECT_NAMES),
+        "baseline": [{"name": p.name, "meaning": m, "nominal": p.x0, "low": p.lo, "high": p.hi}
+                     for p, m in RotaryFamily.default_ranges()]})
 
 
 def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, sources: list[Path],

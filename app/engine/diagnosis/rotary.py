@@ -277,6 +277,18 @@ class RotaryPrep:
     torque_cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
 
 
+BASELINE_MEANING: dict[str, str] = {
+    "prv_c_scale": "PRV flow capacity × nominal",
+    "dcv_c_scale": "DCV flow capacity × nominal",
+    "dead_volume_scale": "chamber dead volumes × nominal",
+    "gain_a": "pressure sensor a's gain",
+    "gain_b": "pressure sensor b's gain",
+    "friction_scale": "static and Coulomb friction × nominal",
+    "viscous_scale": "viscous friction × nominal",
+}
+"""What each recalibrated baseline parameter of the rotary rig scales."""
+
+
 def _clipped(p: Param, bound: tuple[float, float] | None) -> Param:
     """``p`` with its range clipped to ``bound`` (a checked bound lies within the default: there, it is the bound)."""
     if bound is None:
@@ -383,6 +395,11 @@ class RotaryFamily:
 
     def baseline(self) -> list[Param]:
         return [_clipped(p, self._bounds.get(p.name)) for p in self._default_baseline()]
+
+    @classmethod
+    def default_ranges(cls) -> list[tuple[Param, str]]:
+        """The recalibrated parameters with their default ranges, each with what it scales (for a form)."""
+        return [(p, BASELINE_MEANING[p.name]) for p in cls._default_baseline()]
 
     @staticmethod
     def _default_baseline() -> list[Param]:
