@@ -201,7 +201,9 @@ class ProtocolProcedure(Procedure):
         self.progress.total_tests = len(plan)
         for rep, kind, s in plan:
             self.next_test()
-            what = _PROMPT.get(kind, "please hold the handle still at neutral")
+            # a person still pressing on a handle that static friction holds opens the log preloaded
+            # (the simulated user relaxes the same way: RELAX_S)
+            what = _PROMPT.get(kind, "please bring the handle to neutral, then relax your arm and hold it still")
             self.progress.message = (f"experiment {self.progress.k} of {self.progress.n}: {kind}, repetition "
                                      f"{rep + 1} — {DESCRIPTION[kind]}; {what}")
             pw = s.pw_bar if s is not None else ISOTONIC_PW_BAR
