@@ -213,17 +213,18 @@ class ProtocolProcedure(Procedure):
                 theta = self.meas.theta
                 self.set_program(HumanProgram.move(theta, 0.0, self.meas.t))
                 pressurise = max(PRESSURISE_S, HumanProgram.move_time(theta, 0.0) + 0.5)
-            yield from self.hold(Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b), pressurise)
+            filling = Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)  # PRVs at z, DCVs open to the chambers
+            yield from self.hold(filling, pressurise)
             rest_at = 0.0
             if self.set_program is not None:
                 # The arm's pull stops short of neutral where static friction holds the handle
                 # (≈ 0.06 rad at 20 N·m/rad); a user asked to hold still then relaxes there
                 # instead of pressing on, and the experiment runs about that angle. Pressing on,
-                # every log but the first had opened with 1.1–1.3 N·m on a stuck handle.
+                # every log but the first had opened with 1.0–1.3 N·m on a stuck handle.
                 rest_at = self.meas.theta
                 self.set_program(HumanProgram(np.array([self.meas.t, self.meas.t + RELAX_S]),
                                               np.array([0.0, rest_at])))
-                yield from self.hold(Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b), RELAX_S)
+                yield from self.hold(filling, RELAX_S)
             name = f"{kind}-{rep + 1}"
             meta = {**self.meta, "rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": self.p_atm_bar,
                     "working_pressure_bar": pw, "experiment": kind, "human": s.human if s is not None else True,
