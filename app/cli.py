@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -302,8 +304,8 @@ def _serve(args: argparse.Namespace) -> int:
         settings = Settings(host=args.host, port=args.port, viser_port=args.viser_port, **extra)
     except ValidationError as exc:
         raise ValueError(validation_reasons(exc, "settings")) from None
-    if settings.start_engine and settings.auto_connect and _compile_first() != 0:
-        return 130
+    if settings.start_engine and settings.auto_connect:
+        _compile_first()
     if settings.realtime:
         from app.engine.loop import make_server_realtime
 
@@ -315,8 +317,8 @@ def _serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def _compile_first() -> int:
-    """Compile the engine's kernels before the server starts, if this version has not yet; 130 if interrupted.
+def _compile_first() -> None:
+    """Compile the engine's kernels before the server starts, if this version has not yet; Ctrl-C exits 130.
 
     Otherwise the lifespan's connect would compile them (about a minute on
     the 2-core station, once per version): uvicorn acts on a SIGTERM or
@@ -327,16 +329,24 @@ def _compile_first() -> int:
     from app.engine.warm import cold, warm
 
     if not cold(["sim"]):
-        return 0
+        return
     print("cwrr serve: compiling the simulator and controllers for this version (once; about a minute "
           "on two cores) ...", file=sys.stderr, flush=True)
+    # Ctrl-C exits from its handler: a KeyboardInterrupt raised where numba's
+    # LLVM calls back through ctypes is printed and dropped ("Exception ignored
+    # on calling ctypes callback"), and the compile then fails with exit 1
+    # instead (seen once in CI). Nothing is open yet and numba writes each
+    # cache file by rename, so leaving at once loses nothing.
+    def _stop(signum: int, frame: object) -> None:
+        print("cwrr serve: stopped while compiling", file=sys.stderr, flush=True)
+        os._exit(130)
+
+    previous = signal.signal(signal.SIGINT, _stop)
     try:
         took = warm(["sim"])
-    except KeyboardInterrupt:
-        print("cwrr serve: stopped while compiling", file=sys.stderr)
-        return 130
+    finally:
+        signal.signal(signal.SIGINT, previous)
     print(f"cwrr serve: compiled in {took['sim']:.0f} s", file=sys.stderr, flush=True)
-    return 0
 
 
 def _modbus_plant(args: argparse.Namespace) -> int:
