@@ -297,6 +297,9 @@ class _Line:
     def noise(self, p: Experiment) -> dict[str, float]:
         return {"y": 0.01}
 
+    def noise_shows(self, p: Experiment) -> dict[str, np.ndarray]:
+        return {}
+
     def regimes(self, p: Experiment) -> dict[str, np.ndarray]:
         return {}
 

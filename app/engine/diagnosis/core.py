@@ -141,6 +141,15 @@ class Family(Protocol):
         """Noise SD per channel (the floor no model can beat)."""
         ...
 
+    def noise_shows(self, prep: Any) -> dict[str, np.ndarray]:
+        """Per scored sample, the share of a channel's noise variance a right model's error carries [0–1].
+
+        Aligned with :meth:`measured`; a channel left out carries all of it.
+        Less than 1 where the prediction is built from the measurement itself
+        (the rotary torque at standstill, :meth:`RotaryFamily.noise_shows`).
+        """
+        ...
+
     def regimes(self, prep: Any) -> dict[str, np.ndarray]:
         """Boolean masks of operating regimes (aligned with :meth:`measured`)."""
         ...
@@ -419,6 +428,41 @@ def score_at(family: Family, preps: list[Any], params: dict[str, float], effects
             rows_sse.append([float(np.nansum((pr[c][idx] - m[c][idx]) ** 2)) for c in family.channels])
             rows_cnt.append([int(np.isfinite(pr[c][idx] - m[c][idx]).sum()) for c in family.channels])
     return Scores(np.asarray(rows_sse), np.asarray(rows_cnt, dtype=float))
+
+
+def noise_floor(family: Family, preps: Sequence[Any], meas: Sequence[dict[str, np.ndarray]]) -> np.ndarray:
+    """Per channel, the RMS error the sensors' noise alone leaves a right model over ``preps``.
+
+    The same pooling as E (:func:`_e`): the noise's variance weighted by the
+    share of it the scored samples carry (:meth:`Family.noise_shows`). The
+    rotary torque's prediction at standstill is the measurement clipped to
+    what stiction holds, so there every model scores no error. Counting the
+    full noise there had read the protocol's torque floor 1.4–1.75 times what
+    the noise adds to a right model's error (0.83–1.07 times now; measured
+    on the same rig with its torque sensor noise-free, docs/diagnosis.md).
+
+    Args:
+        family: The rig family.
+        preps: Prepared logs.
+        meas: Their :meth:`Family.measured` channels.
+
+    Returns:
+        Noise floor per channel of ``family.channels`` [channel units].
+    """
+    out = []
+    for c in family.channels:
+        # a sensor's noise is the same in every log of one rig: the median over the logs keeps an
+        # experiment whose signal has content at the sample rate (a fast sine's torque) from
+        # passing that content off as noise and raising the floor
+        sd = float(np.median([family.noise(p)[c] for p in preps]))
+        carried = scored = 0.0
+        for p, m in zip(preps, meas, strict=True):
+            ok = np.isfinite(m[c])
+            w = family.noise_shows(p).get(c)
+            scored += float(ok.sum())
+            carried += float(ok.sum()) if w is None else float(np.clip(w[ok], 0.0, 1.0).sum())
+        out.append(sd * math.sqrt(carried / scored) if scored > 0 else sd)
+    return np.asarray(out)
 
 
 @dataclass
@@ -959,10 +1003,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     scales = channel_scales(family, calib)
     held_meas = [family.measured(p) for p in held]
     spread = channel_spread(family, held_meas)
-    # a sensor's noise is the same in every log of one rig: the median over the logs keeps an
-    # experiment whose signal has content at the sample rate (a fast sine's torque) from
-    # passing that content off as noise and raising the floor
-    floor = np.array([float(np.median([family.noise(p)[c] for p in held])) for c in family.channels])
+    floor = noise_floor(family, held, held_meas)
     norm = _Norm(spread, floor)
 
     base = recalibrate(family, calib, scales, stop)

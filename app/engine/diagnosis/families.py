@@ -91,6 +91,9 @@ class ChamberFamily:
     def noise(self, prep: _ChamberPrep) -> dict[str, float]:
         return {"p": prep.noise}
 
+    def noise_shows(self, prep: _ChamberPrep) -> dict[str, np.ndarray]:
+        return {}  # every prediction is the model's own: each sample carries the whole noise
+
     def regimes(self, prep: _ChamberPrep) -> dict[str, np.ndarray]:
         hi = prep.p > prep.p_atm / B_CRIT
         return {"choked (p > P_atm/b)": hi, "subsonic": ~hi}
@@ -197,6 +200,9 @@ class DriveFamily:
 
     def noise(self, prep: _DrivePrep) -> dict[str, float]:
         return {"force": prep.noise}
+
+    def noise_shows(self, prep: _DrivePrep) -> dict[str, np.ndarray]:
+        return {}  # every prediction is the model's own: each sample carries the whole noise
 
     def regimes(self, prep: _DrivePrep) -> dict[str, np.ndarray]:
         sp = np.abs(prep.v)

@@ -57,7 +57,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
-from scipy.signal import butter, filtfilt
+from scipy.signal import butter, fftconvolve, filtfilt
 
 from app.engine.constants import BAR
 from app.engine.diagnosis.core import Param, white_noise_sd
@@ -126,6 +126,29 @@ def _stuck(theta: np.ndarray, w: int) -> np.ndarray:
     lsb = float(moved.min()) if moved.size else 1.0
     span = maximum_filter1d(theta, 2 * w + 1) - minimum_filter1d(theta, 2 * w + 1)
     return np.asarray(span < 0.5 * lsb)
+
+
+def _noise_carried(b: np.ndarray, a: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """Per sample, the share of the filtered torque noise's variance left in the torque's error [0–1].
+
+    Where static friction holds, the replay's friction is what the measured
+    balance asks for (:func:`friction_torque`), so the predicted torque is the
+    measured one and the raw noise there cancels; what reaches a sample is the
+    raw noise of the moving samples the zero-phase filter ``b, a`` spreads into
+    it: the squared impulse response summed over them.
+
+    Args:
+        b: The torque filter's numerator.
+        a: Its denominator.
+        moving: Samples where the encoder moved (not :func:`_stuck`).
+    """
+    half = moving.size  # as long as the log: no response reaches farther than it
+    delta = np.zeros(2 * half + 1)
+    delta[half] = 1.0
+    h2 = filtfilt(b, a, delta) ** 2
+    reach = int(np.flatnonzero(h2 > 1e-12 * h2[half])[-1]) - half
+    h2 = h2[half - reach: half + reach + 1]  # zero-phase: symmetric about its middle
+    return np.clip(fftconvolve(moving.astype(float), h2 / h2.sum(), mode="same"), 0.0, 1.0)
 
 
 def _phase_lost(cmds: np.ndarray, dt: float, kept_s: float = PHASE_KEPT_S,
@@ -273,6 +296,8 @@ class RotaryPrep:
     keep: slice  # the scored samples (see SCORE_RATE_HZ)
     phase_lost: tuple[np.ndarray, np.ndarray]  # per chamber: scored samples predicted by the cycle's mean
     filled: np.ndarray | None = None  # samples a gap in the log made up: pressures unscored there
+    # per scored sample, the share of the torque noise's variance a right model's error carries
+    torque_noise_shows: np.ndarray | None = None
     cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
     torque_cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
 
@@ -510,7 +535,8 @@ class RotaryFamily:
                           np.asarray(ch["torque"], dtype=float), omega_fr,
                           ps0, noise, (b, a), {k: v[keep] for k, v in regimes.items()},
                           {k: v[keep] for k, v in inputs.items()}, still, keep, (lost_a, lost_b),
-                          exp.filled if exp.filled is not None and exp.filled.any() else None)
+                          exp.filled if exp.filled is not None and exp.filled.any() else None,
+                          _noise_carried(b, a, ~still)[keep])
 
     def measured(self, prep: RotaryPrep) -> dict[str, np.ndarray]:
         k = prep.keep
@@ -524,6 +550,9 @@ class RotaryFamily:
 
     def noise(self, prep: RotaryPrep) -> dict[str, float]:
         return dict(prep.noise)
+
+    def noise_shows(self, prep: RotaryPrep) -> dict[str, np.ndarray]:
+        return {} if prep.torque_noise_shows is None else {"torque": prep.torque_noise_shows}
 
     def regimes(self, prep: RotaryPrep) -> dict[str, np.ndarray]:
         return prep.regimes
