@@ -38,6 +38,27 @@ def test_bad_diagnosis_requests_are_refused_and_store_nothing(client: TestClient
     assert client.get("/api/runs", params={"kind": "diagnosis"}).json() == []
 
 
+@pytest.mark.parametrize(("bounds", "words"), [
+    ({"volume": [0.9, 1.1]}, "bound on 'volume': the baseline has no such parameter"),
+    ({"friction_scale": [0.3, 5.0]}, "bound on friction_scale: 0.3 … 5 reaches outside the default range 0.3 … 3"),
+    ({"dead_volume_scale": [1.5, 2.0]}, "leaves out its nominal value 1"),
+    ({"gain_b": [1.1, 0.9]}, "1.1 … 0.9 is not a range"),
+])
+def test_ranges_are_checked_with_a_diagnosis_rules_before_anything_runs(client: TestClient, bounds: dict,
+                                                                         words: str) -> None:
+    """The page checks a range before the rig's protocol runs, with the server's own rules (it had a
+    copy of them in JavaScript): the same 422 as a diagnosis asked for with it, and nothing stored."""
+    r = client.post("/api/diagnoses/bounds", json={"bounds": bounds})
+    assert r.status_code == 422, r.text
+    d = r.json()["detail"][0]
+    assert "bounds" in d["loc"] and words in d["msg"], d
+    assert client.post("/api/diagnoses", json={"protocol": {}, "bounds": bounds}).json()["detail"][0]["msg"] == d["msg"]
+    assert client.get("/api/runs", params={"kind": "diagnosis"}).json() == []
+    ok = client.post("/api/diagnoses/bounds", json={"bounds": {"dead_volume_scale": [0.9, 1.1], "gain_a": [0.8, 1]}})
+    assert ok.status_code == 200 and ok.json() == {"bounds": {"dead_volume_scale": [0.9, 1.1], "gain_a": [0.8, 1.0]}}
+    assert client.get("/api/runs", params={"kind": "diagnosis"}).json() == []
+
+
 @pytest.mark.slow
 def test_the_protocol_table_is_served_from_the_engine(client: TestClient) -> None:
     from app.engine.diagnosis.protocol import PREROLL_S, VISIBLE

@@ -56,6 +56,9 @@ class ProtocolSource(BaseModel):
     scale: Annotated[float, Field(ge=0.2, le=10.0)] = 1.0
 
 
+Bounds = Annotated[dict[Annotated[str, Field(max_length=64)], tuple[float, float]], Field(max_length=16)]
+
+
 class DiagnosisRequest(BaseModel):
     """What to diagnose: ``protocol`` (simulated) or ``run_ids`` (stored runs with logs).
 
@@ -65,11 +68,21 @@ class DiagnosisRequest(BaseModel):
     protocol: ProtocolSource | None = None
     run_ids: list[Annotated[int, Field(ge=1, le=2**62)]] | None = Field(None, min_length=2, max_length=200)
     held_out: list[Annotated[str, Field(max_length=128)]] | None = Field(None, max_length=200)
-    bounds: dict[Annotated[str, Field(max_length=64)], tuple[float, float]] | None = Field(
-        None, max_length=16,
+    bounds: Bounds | None = Field(
+        None,
         description="The recalibration's range [low, high] per baseline parameter of the rotary rig, replacing the "
                     "wide default (e.g. {\"dead_volume_scale\": [0.9, 1.1]} for measured dead volumes); the report "
                     "lists every range used under baseline.bounds")
+
+
+class BoundsCheck(BaseModel):
+    """Recalibration ranges to check before a diagnosis is asked for (nothing runs).
+
+    Attributes:
+        bounds: As in :class:`DiagnosisRequest`.
+    """
+
+    bounds: Bounds
 
 
 class DiagnosisStarted(BaseModel):
@@ -150,6 +163,23 @@ def protocol_table() -> ProtocolTable:
                      for p, m in RotaryFamily.default_ranges()]})
 
 
+def _checked_bounds(bounds: dict[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
+    from app.engine.diagnosis.rotary import RotaryFamily
+
+    try:
+        return RotaryFamily.checked_bounds(bounds)
+    except ValueError as exc:
+        raise ParameterError(f"bounds: {exc}") from None
+
+
+@router.post("/bounds", response_model=BoundsCheck,
+             summary="Check recalibration ranges with the rules a diagnosis applies (nothing runs); 422 says why")
+def check_bounds(req: BoundsCheck) -> BoundsCheck:
+    # the page asks before the protocol runs on the rig: a range refused only when the diagnosis is
+    # posted would come after minutes of experiments
+    return BoundsCheck(bounds=_checked_bounds(req.bounds))
+
+
 def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, sources: list[Path],
           stop: threading.Event) -> None:
     from app.engine.diagnosis.core import Cancelled
@@ -225,12 +255,7 @@ def start(req: DiagnosisRequest, store: StoreDep, jobs: JobsDep, request: Reques
         if set(req.held_out) >= names:
             raise ParameterError("held_out: every log is held out; none is left to fit on")
     if req.bounds:
-        from app.engine.diagnosis.rotary import RotaryFamily
-
-        try:
-            RotaryFamily.checked_bounds(req.bounds)
-        except ValueError as exc:
-            raise ParameterError(f"bounds: {exc}") from None
+        _checked_bounds(req.bounds)
     busy = jobs.refusal()
     if busy:
         raise HTTPException(409, busy)
