@@ -85,6 +85,17 @@ class BoundsCheck(BaseModel):
     bounds: Bounds
 
 
+class BoundsChecked(BaseModel):
+    """Ranges as a diagnosis would take them.
+
+    Attributes:
+        bounds: Parameter → [low, high] (a list: a tuple's response schema
+            comes out as an OpenAPI 3.0 ``items`` array, which 3.1 refuses).
+    """
+
+    bounds: dict[str, list[float]]
+
+
 class DiagnosisStarted(BaseModel):
     """A diagnosis accepted.
 
@@ -172,12 +183,12 @@ def _checked_bounds(bounds: dict[str, tuple[float, float]]) -> dict[str, tuple[f
         raise ParameterError(f"bounds: {exc}") from None
 
 
-@router.post("/bounds", response_model=BoundsCheck,
+@router.post("/bounds", response_model=BoundsChecked,
              summary="Check recalibration ranges with the rules a diagnosis applies (nothing runs); 422 says why")
-def check_bounds(req: BoundsCheck) -> BoundsCheck:
+def check_bounds(req: BoundsCheck) -> BoundsChecked:
     # the page asks before the protocol runs on the rig: a range refused only when the diagnosis is
     # posted would come after minutes of experiments
-    return BoundsCheck(bounds=_checked_bounds(req.bounds))
+    return BoundsChecked(bounds={k: list(v) for k, v in _checked_bounds(req.bounds).items()})
 
 
 def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, sources: list[Path],
