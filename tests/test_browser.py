@@ -491,6 +491,8 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#msg")).to_contain_text("diagnosis", timeout=60_000)
     expect(page.locator("#verdict")).not_to_have_text("—", timeout=120_000)
     expect(page.locator("#detail")).to_contain_text("Held out: hold_closed-2")
+    # each channel's RMS beside the floor the bars are read against, not the bare sensor noise
+    expect(page.locator("#where tr").first).to_contain_text("noise floor")
     page.screenshot(path=str(SHOTS / "6-gap-diagnosis.png"), full_page=True)
     # the person typed on the page went with the protocol's run and its experiments' runs
     with urllib.request.urlopen(base + "/api/runs?kind=diagnosis_protocol&limit=1", timeout=10) as r:

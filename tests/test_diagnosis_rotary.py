@@ -490,6 +490,12 @@ def test_withheld_sensor_bias_through_the_cli(tmp_path: Path, capsys: pytest.Cap
     assert top["params"]["sensor_bias.torque_nm"] == pytest.approx(truth.torque_nm, abs=0.06)
     assert r["how_far"]["e_after"] < r["how_far"]["e_before"]
     assert {w["channel"] for w in r["where"]} == {"p_a", "p_b", "p_s", "torque"}
+    # "where" reads each RMS against the floor the report's E is read against: for the torque, the
+    # part of its sensor's noise a right model's error carries (it cancels at standstill)
+    spread = {w["channel"]: w["floor"] / r["noise_floor"]["nrmse"][w["channel"]] for w in r["where"]}
+    assert all(w["floor"] > 0 for w in r["where"]) and len({round(v, 9) for v in spread.values()}) <= 2, spread
+    tq = next(w for w in r["where"] if w["channel"] == "torque")
+    assert tq["floor"] < 0.8 * tq["noise"], tq
     assert sorted(r["experiments"]["held_out"]) == sorted(f"{k}-2" for k in VISIBLE)
     assert r["experiments"]["split"] == "the last repetition of every experiment run more than once"
     assert "motion" in r["experiments"]["excites"]["friction_sweep-1"]

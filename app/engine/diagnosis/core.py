@@ -538,7 +538,12 @@ def ljung_box(r: np.ndarray, lags: int = 10) -> tuple[list[float], float]:
 
 
 def where(family: Family, preps: list[Any], f: Fit) -> list[dict[str, Any]]:
-    """Residuals of fit ``f`` per channel and regime, whiteness and input cross-correlation."""
+    """Residuals of fit ``f`` per channel and regime, whiteness and input cross-correlation.
+
+    Each channel's ``noise`` is its sensor's noise SD, ``floor`` the RMS that
+    noise alone leaves a right model (:func:`noise_floor`), to which ``rms``
+    compares.
+    """
     out: list[dict[str, Any]] = []
     res = {c: [] for c in family.channels}  # type: dict[str, list[np.ndarray]]
     masks: dict[str, list[np.ndarray]] = {}
@@ -553,11 +558,14 @@ def where(family: Family, preps: list[Any], f: Fit) -> list[dict[str, Any]]:
         for k, v in family.inputs(p).items():
             ins.setdefault(k, []).append(v)
     noise = channel_scales(family, preps)
+    # what the RMS is to be read against: where the prediction is built from the measurement (the
+    # rotary torque at standstill) the sensor's noise cancels, so its SD alone would flatter the fit
+    floor = dict(zip(family.channels, noise_floor(family, preps, [family.measured(p) for p in preps]), strict=True))
     for c in family.channels:
         r = np.concatenate(res[c])
         ac, p_white = ljung_box(r)
         entry: dict[str, Any] = {"channel": c, "rms": float(np.sqrt(np.nanmean(r ** 2))),
-                                 "bias": float(np.nanmean(r)), "noise": noise[c],
+                                 "bias": float(np.nanmean(r)), "noise": noise[c], "floor": float(floor[c]),
                                  "autocorr_lag1_10": ac, "ljung_box_p": p_white, "regimes": {}, "input_xcorr": {}}
         for k, ms in masks.items():
             mk = np.concatenate(ms) & np.isfinite(r)  # unscored samples (NaN) belong to no regime
