@@ -196,6 +196,7 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     expect(page.locator("#run-notes-msg")).to_have_text(f"Notes on run {run_id} saved.")
     with urllib.request.urlopen(f"{base}/api/runs/{run_id}", timeout=10) as r:
         assert json.loads(r.read())["notes"] == "stopped: asked for a break"
+    page.evaluate("window.scrollTo(0, 0)")  # the sticky header is drawn where the page is scrolled to
     page.screenshot(path=str(SHOTS / "3-metrics-and-history.png"), full_page=True)
 
     with page.expect_download() as dl:
