@@ -17,7 +17,8 @@ add (each at most three bounded parameters, named as in
    with the baseline parameters and scored on held-out experiments: NRMSE per
    channel, gap closure GC = (E_base − E_with)/(E_base − E_floor) with E the
    channel-mean NRMSE and E_floor the noise floor's (the median of each
-   log's noise estimate), ΔBIC on the calibration
+   log's noise estimate, times the root of the share of it a right model's
+   error carries: :func:`noise_floor`), ΔBIC on the calibration
    fit, a bootstrap CI of GC over held-out experiments (or over blocks of
    time when fewer than four are held out). An effect is *significant* when
    ΔBIC > 10 (strong evidence), the CI's lower end is above zero, GC ≥ 0.2,
