@@ -538,12 +538,17 @@ def ljung_box(r: np.ndarray, lags: int = 10) -> tuple[list[float], float]:
     return ac, float(stats.chi2.sf(q, lags))
 
 
-def where(family: Family, preps: list[Any], f: Fit) -> list[dict[str, Any]]:
+def where(family: Family, preps: list[Any], f: Fit, floor: np.ndarray) -> list[dict[str, Any]]:
     """Residuals of fit ``f`` per channel and regime, whiteness and input cross-correlation.
 
     Each channel's ``noise`` is its sensor's noise SD, ``floor`` the RMS that
-    noise alone leaves a right model (:func:`noise_floor`), to which ``rms``
-    compares.
+    noise alone leaves a right model, to which ``rms`` compares.
+
+    Args:
+        family: The rig family.
+        preps: Prepared logs.
+        f: The fit whose residuals are read.
+        floor: :func:`noise_floor` of ``preps``, per channel of ``family.channels``.
     """
     out: list[dict[str, Any]] = []
     res = {c: [] for c in family.channels}  # type: dict[str, list[np.ndarray]]
@@ -561,12 +566,11 @@ def where(family: Family, preps: list[Any], f: Fit) -> list[dict[str, Any]]:
     noise = channel_scales(family, preps)
     # what the RMS is to be read against: where the prediction is built from the measurement (the
     # rotary torque at standstill) the sensor's noise cancels, so its SD alone would flatter the fit
-    floor = dict(zip(family.channels, noise_floor(family, preps, [family.measured(p) for p in preps]), strict=True))
-    for c in family.channels:
+    for c, fl in zip(family.channels, floor, strict=True):
         r = np.concatenate(res[c])
         ac, p_white = ljung_box(r)
         entry: dict[str, Any] = {"channel": c, "rms": float(np.sqrt(np.nanmean(r ** 2))),
-                                 "bias": float(np.nanmean(r)), "noise": noise[c], "floor": float(floor[c]),
+                                 "bias": float(np.nanmean(r)), "noise": noise[c], "floor": float(fl),
                                  "autocorr_lag1_10": ac, "ljung_box_p": p_white, "regimes": {}, "input_xcorr": {}}
         for k, ms in masks.items():
             mk = np.concatenate(ms) & np.isfinite(r)  # unscored samples (NaN) belong to no regime
@@ -1108,7 +1112,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         "baseline": {"nrmse": dict(zip(chans, map(float, nr_base), strict=True)), "e": e_base,
                      "identifiability": base.identifiability(), "gap": gap},
         "noise_floor": {"nrmse": dict(zip(chans, map(float, floor / spread), strict=True)), "e": e_floor},
-        "where": where(family, held, base),
+        "where": where(family, held, base, floor),
         # an effect taken out of the verdict for an alternative keeps its single fit's significance
         # against the baseline here, and says what took its place
         "ranking": [c.as_dict() | ({"dropped_for": dropped[c.effect]} if c.effect in dropped else {})
