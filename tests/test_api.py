@@ -152,6 +152,8 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
     assert ser["columns"][0] == "t" and len(ser["rows"]) == -(-len(full["rows"]) // 10)
     n = full["rows_total"]
     assert n == len(full["rows"]) and ser["rows_total"] == n and full["every"] == 1
+    # the log's JSON header rides along: a plot of the PRV commands needs its atmosphere
+    assert full["meta"]["p_atm_bar"] == pytest.approx(1.01325) and full["meta"]["rig"] == "rotary", full["meta"]
     # a plot asks for what it can draw: every is raised to fit, never lowered
     fit = client.get(f"/api/runs/{run_id}/series", params={"max_rows": 300}).json()
     assert fit["every"] == -(-n // 300) and len(fit["rows"]) <= 300 and fit["rows"] == full["rows"][::fit["every"]]

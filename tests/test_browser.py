@@ -179,6 +179,12 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
         res = json.loads(r.read())["result"]
     tinted = [float(x) for x in (trace.get_attribute("data-window") or "").split(",")]
     assert tinted == pytest.approx([x + res["program_start_s"] for x in res["window_s"]], abs=1e-3), (tinted, res)
+    # and beneath it the chambers' pressures against what their regulators were commanded, the same rows
+    press = page.locator("#c-trace-press")
+    expect(press).to_be_visible()
+    expect(press).to_have_attribute("data-run", str(run_id))
+    assert press.get_attribute("data-samples") == trace.get_attribute("data-samples")
+    assert float(press.get_attribute("data-atm") or "nan") == pytest.approx(1.01325)
     with urllib.request.urlopen(f"{base}/api/sessions/{session_id}", timeout=10) as r:
         assert json.loads(r.read())["runs"] == [run_id]
     expect(page.locator("#session option:checked")).to_contain_text("(1 run)")

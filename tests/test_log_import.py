@@ -62,6 +62,7 @@ def test_an_uploaded_log_is_stored_as_a_run_with_its_series_and_exports(client: 
     s = client.get(f"/api/runs/{run['id']}/series").json()
     assert s["columns"] == list(LOG_COLUMNS)
     np.testing.assert_allclose(np.asarray(s["rows"]), data, rtol=1e-8, atol=1e-12)
+    assert s["meta"] == META
     assert client.get(f"/api/runs/{run['id']}/export", params={"fmt": "mat"}).status_code == 200
     # on disk it is a log pair in the fixed format, under the name it was given
     files = sorted((tmp_path / "imported").rglob("rig-isotonic-1.*"))

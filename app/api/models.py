@@ -416,12 +416,16 @@ class Series(BaseModel):
         rows: Samples.
         every: Decimation factor applied.
         rows_total: Samples stored (before decimation).
+        meta: The log's JSON header as stored beside it (``rig``, ``sample_rate_hz``,
+            ``p_atm_bar`` [bar abs], ``working_pressure_bar`` [bar abs], ``experiment``,
+            ``human``, …); empty if it is missing or unreadable.
     """
 
     columns: list[str]
     rows: list[list[float]]
     every: int
     rows_total: int
+    meta: dict[str, Any] = {}
 
 
 class ParamSetIn(BaseModel):

@@ -86,10 +86,21 @@ def series(run_id: IdPath, store: StoreDep, every: int = Query(1, ge=1, le=10000
            max_rows: Annotated[int | None, Query(ge=2, le=10**7, description=(
                "At most this many rows: ``every`` is raised as far as needed (a plot of a run of "
                "any length asks for what it can draw)"))] = None) -> Series:
-    cols, data = _load(_get(store, run_id))
+    r = _get(store, run_id)
+    cols, data = _load(r)
     if max_rows is not None:
         every = max(every, -(-len(data) // max_rows))
-    return Series(columns=cols, rows=data[::every].tolist(), every=every, rows_total=len(data))
+    return Series(columns=cols, rows=data[::every].tolist(), every=every, rows_total=len(data), meta=_meta(r))
+
+
+def _meta(r: dict[str, Any]) -> dict[str, Any]:
+    """The log's JSON header beside its CSV (a plot needs its ``p_atm_bar`` to draw the PRV commands)."""
+    try:
+        meta = json.loads(_log_path(r).with_suffix(".json").read_text(encoding="utf-8"))
+        json.dumps(meta, allow_nan=False)  # a NaN in an imported header would fail the answer itself
+    except (OSError, ValueError):
+        return {}  # the series itself is still worth having without it
+    return meta if isinstance(meta, dict) else {}
 
 
 FILES: dict[int | str, dict[str, Any]] = {
