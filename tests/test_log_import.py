@@ -71,6 +71,19 @@ def test_an_uploaded_log_is_stored_as_a_run_with_its_series_and_exports(client: 
     assert exp.name == "rig-isotonic-1" and exp.meta == META
 
 
+def test_a_header_key_beyond_the_fixed_ones_that_is_nan_reads_back_as_null(client: TestClient) -> None:
+    # Python's JSON reader takes NaN, which no JSON answer may carry: the run, its list and its series
+    # still answer (the value as null), and the series keeps the rest of the header for its plot
+    body = json.dumps({"name": "nan-note", "meta": META | {"ambient_c": float("nan")}, "csv": _csv(_log(0.5))})
+    r = client.post("/api/runs", content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 201, r.text
+    run_id = r.json()["id"]
+    assert client.get(f"/api/runs/{run_id}").json()["spec"]["meta"]["ambient_c"] is None
+    assert client.get("/api/runs").status_code == 200
+    s = client.get(f"/api/runs/{run_id}/series", params={"max_rows": 10})
+    assert s.status_code == 200 and s.json()["meta"] == META | {"ambient_c": None}
+
+
 @pytest.mark.parametrize(("change", "field", "words"), [
     ({"name": "../../etc/passwd"}, "name", "pattern"),
     ({"csv": "t,z_a,z_b\n0,1,2\n"}, "csv", "missing column(s) u_a"),

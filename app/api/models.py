@@ -418,7 +418,8 @@ class Series(BaseModel):
         rows_total: Samples stored (before decimation).
         meta: The log's JSON header as stored beside it (``rig``, ``sample_rate_hz``,
             ``p_atm_bar`` [bar abs], ``working_pressure_bar`` [bar abs], ``experiment``,
-            ``human``, …); empty if it is missing or unreadable.
+            ``human``, …); empty if it is missing or unreadable; a value no JSON answer
+            may carry (NaN) reads as null.
     """
 
     columns: list[str]

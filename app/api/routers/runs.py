@@ -97,7 +97,6 @@ def _meta(r: dict[str, Any]) -> dict[str, Any]:
     """The log's JSON header beside its CSV (a plot needs its ``p_atm_bar`` to draw the PRV commands)."""
     try:
         meta = json.loads(_log_path(r).with_suffix(".json").read_text(encoding="utf-8"))
-        json.dumps(meta, allow_nan=False)  # a NaN in an imported header would fail the answer itself
     except (OSError, ValueError):
         return {}  # the series itself is still worth having without it
     return meta if isinstance(meta, dict) else {}
