@@ -640,3 +640,32 @@ def test_a_slow_server_gets_one_poll_at_a_time_and_the_plot_holds_each_sample_on
             call("POST", "/api/engine/stop")
         page.close()
     assert not errors, errors
+
+
+@pytest.mark.parametrize("width", [390, 820])
+def test_on_a_phone_or_tablet_both_pages_fit_and_the_stop_buttons_stay_on_screen(
+        station: tuple[str, str], browser: object, width: int) -> None:
+    """At 390 px the second column and E-STOP had been pushed past the screen's right edge."""
+    from playwright.sync_api import Browser, expect
+
+    assert isinstance(browser, Browser)
+    base, _viser = station
+    page = browser.new_page(viewport={"width": width, "height": 800})
+    try:
+        overflow = "() => document.scrollingElement.scrollWidth - window.innerWidth"
+        page.goto(base + "/")
+        expect(page.locator("#state")).not_to_have_text("…")
+        assert page.evaluate(overflow) <= 0, page.evaluate(overflow)
+        for button in ("#stop", "#estop"):
+            box = page.locator(button).bounding_box()
+            assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= width, (button, box)
+            assert box["y"] + box["height"] <= 800, (button, box)  # in the header, before any scrolling
+        # and still there once the page is scrolled down to the history (the header stays on top)
+        page.locator("#runs").scroll_into_view_if_needed()
+        box = page.locator("#estop").bounding_box()
+        assert box is not None and 0 <= box["y"] and box["y"] + box["height"] <= 800, box
+        page.goto(base + "/static/diagnosis.html")
+        expect(page.locator("#protocol tr").nth(1)).to_be_visible()  # built from the server's table
+        assert page.evaluate(overflow) <= 0, page.evaluate(overflow)
+    finally:
+        page.close()
