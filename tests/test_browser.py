@@ -660,6 +660,13 @@ def test_on_a_phone_or_tablet_both_pages_fit_and_the_stop_buttons_stay_on_screen
             box = page.locator(button).bounding_box()
             assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= width, (button, box)
             assert box["y"] + box["height"] <= 800, (button, box)  # in the header, before any scrolling
+        if width < 720:
+            # one column in an exercise's order: the live charts right after the exercise form, the
+            # identification and tuning forms after the history
+            ys = {name: page.locator(sel).bounding_box()["y"]  # type: ignore[index]
+                  for name, sel in (("exercise", "#start"), ("live", "#c-torque"), ("history", "#runs"),
+                                    ("identification", "#ident-title"), ("tuning", "#tune-pid"))}
+            assert ys["exercise"] < ys["live"] < ys["history"] < ys["identification"] < ys["tuning"], ys
         # and still there once the page is scrolled down to the history (the header stays on top)
         page.locator("#runs").scroll_into_view_if_needed()
         box = page.locator("#estop").bounding_box()
