@@ -667,6 +667,11 @@ def test_on_a_phone_or_tablet_both_pages_fit_and_the_stop_buttons_stay_on_screen
                   for name, sel in (("exercise", "#start"), ("live", "#c-torque"), ("history", "#runs"),
                                     ("identification", "#ident-title"), ("tuning", "#tune-pid"))}
             assert ys["exercise"] < ys["live"] < ys["history"] < ys["identification"] < ys["tuning"], ys
+            # a chart is drawn at the size it is shown, not squeezed from 900 px (its labels with it)
+            sizes = page.evaluate("""() => { const c = document.getElementById('c-torque');
+                draw(c, [[1, '#1f77b4']], -0.2, 0.2, [[0, 0.1], [1, -0.1]]);
+                return [c.width, c.clientWidth, c.height, c.clientHeight]; }""")
+            assert sizes[0] == sizes[1] < 400 and sizes[2] == sizes[3], sizes
         # and still there once the page is scrolled down to the history (the header stays on top)
         page.locator("#runs").scroll_into_view_if_needed()
         box = page.locator("#estop").bounding_box()
