@@ -672,6 +672,13 @@ def test_on_a_phone_or_tablet_both_pages_fit_and_the_stop_buttons_stay_on_screen
                 draw(c, [[1, '#1f77b4']], -0.2, 0.2, [[0, 0.1], [1, -0.1]]);
                 return [c.width, c.clientWidth, c.height, c.clientHeight]; }""")
             assert sizes[0] == sizes[1] < 400 and sizes[2] == sizes[3], sizes
+            # the header in two rows whatever the state says: the title, then the page link, the
+            # state and both stop buttons (with the longest state label the station shows)
+            page.evaluate("() => { document.getElementById('state').textContent = 'disconnected'; }")
+            row = [page.locator(sel).bounding_box() for sel in ("header > a", "#state", "#stop", "#estop")]
+            mids = [b["y"] + b["height"] / 2 for b in row if b is not None]
+            assert len(mids) == 4 and max(mids) - min(mids) < 8, row
+            assert row[-1]["x"] + row[-1]["width"] <= width, row  # type: ignore[index]
         # and still there once the page is scrolled down to the history (the header stays on top)
         page.locator("#runs").scroll_into_view_if_needed()
         box = page.locator("#estop").bounding_box()
