@@ -2,9 +2,67 @@
 
 from __future__ import annotations
 
+import inspect
+import re
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+
+def attribute_docs(doc: str | None) -> dict[str, str]:
+    """The entries of a Google-style docstring's ``Attributes:`` section.
+
+    Args:
+        doc: A class docstring.
+
+    Returns:
+        Each attribute's text, its continuation lines joined with spaces.
+    """
+    out: dict[str, str] = {}
+    lines = inspect.cleandoc(doc or "").splitlines()
+    try:
+        start = lines.index("Attributes:") + 1
+    except ValueError:
+        return out
+    name = None
+    indent = 0
+    for line in lines[start:]:
+        if not line.strip():
+            continue
+        depth = len(line) - len(line.lstrip())
+        if depth == 0:
+            break  # the next section
+        m = re.match(r"(\w+)(?: \([^)]*\))?: (.*)", line.strip())
+        if m and (name is None or depth <= indent):
+            name, indent = m.group(1), depth
+            out[name] = m.group(2).strip()
+        elif name is not None:
+            out[name] += " " + line.strip()
+    return out
+
+
+class Documented(BaseModel):
+    """A model whose fields are described in the OpenAPI schema by its docstring's ``Attributes:``.
+
+    The meaning and unit of each field are written once, in the docstring the
+    code's readers see; this puts the same text where an API's users look
+    (``/docs``, ``/openapi.json``). A field's own ``description`` is kept where
+    the docstring does not name it. Hand-written rather than a docstring
+    library: our docstrings have one shape, and twenty lines read it.
+    """
+
+    @classmethod
+    def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
+        super().__pydantic_init_subclass__(**kwargs)
+        docs = attribute_docs(cls.__doc__)
+        changed = False
+        for name, field in cls.model_fields.items():
+            text = docs.get(name)
+            if text and field.description != text:
+                field.description = text
+                changed = True
+        if changed:
+            cls.model_rebuild(force=True, raise_errors=False)
 
 # who a run is for, as every request that starts one takes it
 PERSON_PATTERN = r"^[A-Za-z0-9_.-]*$"
@@ -13,7 +71,7 @@ Notes = Annotated[str, Field(max_length=2000)]
 SessionRef = Annotated[int | None, Field(ge=1, le=2**62, description="therapy session (person taken from it)")]
 
 
-class Health(BaseModel):
+class Health(Documented):
     """Engine health.
 
     Attributes:
@@ -50,7 +108,7 @@ class Health(BaseModel):
     heap_refreeze_ms: float = 0.0
 
 
-class EngineStatus(BaseModel):
+class EngineStatus(Documented):
     """The station's state machine as the dashboard sees it.
 
     Attributes:
@@ -82,7 +140,7 @@ class EngineStatus(BaseModel):
     calibration: dict[str, str | None] | None = None
 
 
-class CalibrateRequest(BaseModel):
+class CalibrateRequest(Documented):
     """Zero one sensor from idle samples (issue 8 item 5).
 
     Attributes:
@@ -99,7 +157,7 @@ class CalibrateRequest(BaseModel):
     p_atm_bar: float = Field(1.01325, ge=0.7, le=1.1, description="bar abs")
 
 
-class CalibrationResult(BaseModel):
+class CalibrationResult(Documented):
     """What a calibration changed.
 
     Attributes:
@@ -119,7 +177,7 @@ class CalibrationResult(BaseModel):
     saved_to: str | None
 
 
-class RunRequest(BaseModel):
+class RunRequest(Documented):
     """Start a scenario run (thesis 4.4–4.7).
 
     Attributes:
@@ -145,7 +203,7 @@ class RunRequest(BaseModel):
     fuzzy_id: int | None = Field(None, ge=1, le=2**62, description="stored fuzzy MF set")
 
 
-class ConnectRequest(BaseModel):
+class ConnectRequest(Documented):
     """Which rig to connect.
 
     Attributes:
@@ -161,7 +219,7 @@ class ConnectRequest(BaseModel):
     cylinder: Literal["C1", "C2", "C3"] = "C3"
 
 
-class LinearIdentRequest(BaseModel):
+class LinearIdentRequest(Documented):
     """Linear friction identification inputs (thesis Figure 3.27, Appendix 2 rules).
 
     Attributes:
@@ -183,7 +241,7 @@ class LinearIdentRequest(BaseModel):
     seed: int = Field(0, ge=0, le=2**31 - 1)
 
 
-class SessionIn(BaseModel):
+class SessionIn(Documented):
     """Open a therapy session.
 
     Attributes:
@@ -197,7 +255,7 @@ class SessionIn(BaseModel):
     notes: Notes = ""
 
 
-class NotesIn(BaseModel):
+class NotesIn(Documented):
     """New notes for a session or a run (they replace the old ones).
 
     Attributes:
@@ -209,7 +267,7 @@ class NotesIn(BaseModel):
     notes: Notes
 
 
-class Session(BaseModel):
+class Session(Documented):
     """A therapy session.
 
     Attributes:
@@ -231,7 +289,7 @@ class Session(BaseModel):
     runs: list[int] = []
 
 
-class RotaryIdentRequest(BaseModel):
+class RotaryIdentRequest(Documented):
     """Rotary friction identification inputs (thesis Figure 3.19, Appendix 1 rules).
 
     Attributes:
@@ -255,7 +313,7 @@ class RotaryIdentRequest(BaseModel):
     seed: int = Field(0, ge=0, le=2**31 - 1)
 
 
-class ProtocolRunRequest(BaseModel):
+class ProtocolRunRequest(Documented):
     """The diagnosis protocol on the connected rotary rig (issue 6 §6), through the engine like a workout.
 
     Attributes:
@@ -283,7 +341,7 @@ class ProtocolRunRequest(BaseModel):
 Triple = tuple[Literal["filling", "exhausting"], float, float]
 
 
-class DCVIdentRequest(BaseModel):
+class DCVIdentRequest(Documented):
     """Directional-valve identification inputs (thesis 3.2.3 and 4.1; SPEC §3 grid by default).
 
     Attributes:
@@ -321,7 +379,7 @@ class DCVIdentRequest(BaseModel):
     validation_s: float = 15.0
 
 
-class PIDTuneRequest(BaseModel):
+class PIDTuneRequest(Documented):
     """Frequency-response autotune of one PRV pressure loop (thesis 3.6.2), on the rotary rig.
 
     Attributes:
@@ -348,7 +406,7 @@ class PIDTuneRequest(BaseModel):
     initial: tuple[float, float, float] = (0.25, 1.5, 0.0005)
 
 
-class Started(BaseModel):
+class Started(Documented):
     """Work accepted.
 
     Attributes:
@@ -360,7 +418,7 @@ class Started(BaseModel):
     status: EngineStatus
 
 
-class LiveData(BaseModel):
+class LiveData(Documented):
     """Recent samples from the live buffer.
 
     Attributes:
@@ -374,7 +432,7 @@ class LiveData(BaseModel):
     t_last: float
 
 
-class RunInfo(BaseModel):
+class RunInfo(Documented):
     """A stored run.
 
     Attributes:
@@ -408,7 +466,7 @@ class RunInfo(BaseModel):
     has_series: bool
 
 
-class Series(BaseModel):
+class Series(Documented):
     """A run's time series.
 
     Attributes:
@@ -429,7 +487,7 @@ class Series(BaseModel):
     meta: dict[str, Any] = {}
 
 
-class ParamSetIn(BaseModel):
+class ParamSetIn(Documented):
     """A parameter set to validate and store.
 
     Attributes:
@@ -446,7 +504,7 @@ class ParamSetIn(BaseModel):
     values: dict[str, float | str]
 
 
-class ParamSet(BaseModel):
+class ParamSet(Documented):
     """A stored parameter set.
 
     Attributes:
@@ -464,7 +522,7 @@ class ParamSet(BaseModel):
     created: float
 
 
-class FormCheckIn(BaseModel):
+class FormCheckIn(Documented):
     """Values typed so far into a thesis GUI form, in entry order.
 
     Attributes:
@@ -476,7 +534,7 @@ class FormCheckIn(BaseModel):
     values: dict[str, float]
 
 
-class FieldState(BaseModel):
+class FieldState(Documented):
     """One field of a guided form.
 
     Attributes:
@@ -492,7 +550,7 @@ class FieldState(BaseModel):
     editable: bool
 
 
-class FormState(BaseModel):
+class FormState(Documented):
     """A guided form after replaying the typed values.
 
     Attributes:
@@ -508,7 +566,7 @@ class FormState(BaseModel):
     refused: str | None
 
 
-class ViserInfo(BaseModel):
+class ViserInfo(Documented):
     """Where the viser live plots are.
 
     Attributes:
@@ -521,7 +579,7 @@ class ViserInfo(BaseModel):
     expires_s: float | None = None
 
 
-class AuthInfo(BaseModel):
+class AuthInfo(Documented):
     """Whether this station asks for a token, and what the presented one allows.
 
     Attributes:

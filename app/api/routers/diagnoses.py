@@ -17,11 +17,12 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException, Request
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from app.api.auth import ADMIN, AUTH_RESPONSES
 from app.api.deps import JobsDep, StoreDep
 from app.api.jobs import JobRefused
+from app.api.models import Documented
 from app.engine.params import EFFECT_NAMES, ParameterError
 from app.storage import Store
 
@@ -33,7 +34,7 @@ EffectName = Literal[
 assert set(EffectName.__args__) == set(EFFECT_NAMES)  # type: ignore[attr-defined]
 
 
-class ProtocolSource(BaseModel):
+class ProtocolSource(Documented):
     """Run the diagnosis protocol on the simulated rig first.
 
     Attributes:
@@ -59,10 +60,17 @@ class ProtocolSource(BaseModel):
 Bounds = Annotated[dict[Annotated[str, Field(max_length=64)], tuple[float, float]], Field(max_length=16)]
 
 
-class DiagnosisRequest(BaseModel):
+class DiagnosisRequest(Documented):
     """What to diagnose: ``protocol`` (simulated) or ``run_ids`` (stored runs with logs).
 
     A diagnosis of ``run_ids`` is stored with the person and therapy session its runs all share.
+
+    Attributes:
+        protocol: Run the diagnosis protocol on the simulated rig, then diagnose its logs.
+        run_ids: Stored runs whose logs are diagnosed (at least two: some are fitted on, the
+            others held out).
+        held_out: Names of the logs to score on (whole experiments withheld from every fit);
+            default: the tool's own split.
     """
 
     protocol: ProtocolSource | None = None
@@ -75,7 +83,7 @@ class DiagnosisRequest(BaseModel):
                     "lists every range used under baseline.bounds")
 
 
-class BoundsCheck(BaseModel):
+class BoundsCheck(Documented):
     """Recalibration ranges to check before a diagnosis is asked for (nothing runs).
 
     Attributes:
@@ -85,7 +93,7 @@ class BoundsCheck(BaseModel):
     bounds: Bounds
 
 
-class BoundsChecked(BaseModel):
+class BoundsChecked(Documented):
     """Ranges as a diagnosis would take them.
 
     Attributes:
@@ -96,7 +104,7 @@ class BoundsChecked(BaseModel):
     bounds: dict[str, list[float]]
 
 
-class DiagnosisStarted(BaseModel):
+class DiagnosisStarted(Documented):
     """A diagnosis accepted.
 
     Attributes:
@@ -108,7 +116,7 @@ class DiagnosisStarted(BaseModel):
     status: Literal["running"] = "running"
 
 
-class ProtocolExperiment(BaseModel):
+class ProtocolExperiment(Documented):
     """One experiment of the diagnosis protocol.
 
     Attributes:
@@ -122,7 +130,7 @@ class ProtocolExperiment(BaseModel):
     makes_visible: list[EffectName]
 
 
-class BaselineRange(BaseModel):
+class BaselineRange(Documented):
     """A baseline parameter the recalibration fits, with its default range (``bounds`` may narrow it).
 
     Attributes:
@@ -140,7 +148,7 @@ class BaselineRange(BaseModel):
     high: float
 
 
-class ProtocolTable(BaseModel):
+class ProtocolTable(Documented):
     """The diagnosis protocol (issue 6 §6): every experiment is run twice; the second run of each is held out.
 
     Attributes:

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter, HTTPException, Path, Query
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ
 from app.api.deps import IdPath, StoreDep
@@ -16,7 +16,9 @@ router = APIRouter(prefix="/api", tags=["parameters"], dependencies=[READ], resp
 
 
 @router.post("/forms/{rig}", response_model=FormState, summary="Replay typed values through a thesis GUI form")
-def check_form(rig: Literal["rotary", "linear"], body: FormCheckIn) -> FormState:
+def check_form(rig: Annotated[Literal["rotary", "linear"], Path(description=(
+        "Which GUI: rotary (thesis Figure 3.19) or linear (Figure 3.27) friction identification"))],
+               body: FormCheckIn) -> FormState:
     form = GuidedForm(rig)
     refused: str | None = None
     message = form.message
@@ -47,7 +49,8 @@ def param_fields() -> dict[str, list[str]]:
 
 
 @router.get("/params", response_model=list[ParamSet], summary="Stored parameter sets, newest first")
-def list_params(store: StoreDep, kind: Literal["rotary", "linear", "workout", "gains", "fuzzy"] | None = None
+def list_params(store: StoreDep, kind: Annotated[Literal["rotary", "linear", "workout", "gains", "fuzzy"] | None,
+                                                 Query(description="Only sets of this kind")] = None
                 ) -> list[ParamSet]:
     return [ParamSet(**p) for p in store.param_sets(kind)]
 

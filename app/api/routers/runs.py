@@ -13,11 +13,11 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import IdPath, StoreDep
-from app.api.models import PERSON_PATTERN, NotesIn, RunInfo, Series
+from app.api.models import PERSON_PATTERN, Documented, NotesIn, RunInfo, Series
 from app.engine.params import ParameterError
 from app.engine.station import RunKind
 
@@ -56,11 +56,12 @@ def _load(r: dict[str, Any]) -> tuple[list[str], np.ndarray]:
 
 
 @router.get("", response_model=list[RunInfo], summary="Runs, newest first")
-def list_runs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-              offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+def list_runs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000, description="At most this many runs")] = 100,
+              offset: Annotated[int, Query(ge=0, le=10**9, description="Skip this many of the newest first")] = 0,
               kind: Annotated[RunKind | None, Query(description="Only runs of this kind (a misspelt kind is "
                                                                 "refused, not answered with an empty list)")] = None,
-              session_id: Annotated[int | None, Query(ge=1, le=2**62)] = None,
+              session_id: Annotated[int | None, Query(ge=1, le=2**62, description="Only this therapy session's runs")]
+              = None,
               person: Annotated[str | None, Query(max_length=64, pattern=PERSON_PATTERN,
                                                   description="Only this person's runs (pseudonymous id, exact)")]
               = None) -> list[RunInfo]:
@@ -82,7 +83,8 @@ def edit_notes(run_id: IdPath, body: NotesIn, store: StoreDep) -> RunInfo:
 
 @router.get("/{run_id}/series", response_model=Series, responses=NOT_FOUND,
             summary="Time series, every n-th sample")
-def series(run_id: IdPath, store: StoreDep, every: int = Query(1, ge=1, le=10000),
+def series(run_id: IdPath, store: StoreDep,
+           every: int = Query(1, ge=1, le=10000, description="Every n-th sample (1: all)"),
            max_rows: Annotated[int | None, Query(ge=2, le=10**7, description=(
                "At most this many rows: ``every`` is raised as far as needed (a plot of a run of "
                "any length asks for what it can draw)"))] = None) -> Series:
@@ -126,7 +128,10 @@ def _parquet(r: dict[str, Any]) -> bytes:
 
 @router.get("/{run_id}/export", responses=FILES,
             summary="Download the time series as CSV, Parquet or MATLAB .mat")
-def export(run_id: IdPath, store: StoreDep, fmt: Literal["csv", "parquet", "mat"] = "csv") -> Response:
+def export(run_id: IdPath, store: StoreDep, fmt: Annotated[Literal["csv", "parquet", "mat"], Query(
+        description="csv (the log format), parquet (spec and metrics in its metadata) or mat (MATLAB: one "
+                    "variable per column, metric_<name> per metric)")] = "csv"
+        ) -> Response:
     r = _get(store, run_id)
     if fmt == "csv":
         return FileResponse(_log_path(r), media_type="text/csv", filename=f"run-{run_id}.csv")
@@ -146,7 +151,7 @@ def export(run_id: IdPath, store: StoreDep, fmt: Literal["csv", "parquet", "mat"
                     headers={"Content-Disposition": f'attachment; filename="run-{run_id}.mat"'})
 
 
-class LogImport(BaseModel):
+class LogImport(Documented):
     """A run log recorded elsewhere (another station, the rig's own DAQ, a script), in the station's format.
 
     Attributes:

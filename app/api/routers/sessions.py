@@ -25,8 +25,9 @@ def open_session(body: SessionIn, store: StoreDep) -> Session:
 
 
 @router.get("", response_model=list[Session], summary="Sessions, newest first")
-def list_sessions(store: StoreDep, person: Annotated[str | None, Query(max_length=64, pattern=PERSON_PATTERN)] = None
-                  ) -> list[Session]:
+def list_sessions(store: StoreDep, person: Annotated[str | None, Query(
+        max_length=64, pattern=PERSON_PATTERN, description="Only this person's sessions (pseudonymous id, exact)")]
+        = None) -> list[Session]:
     return [_session(store, r) for r in store.sessions(person)]
 
 
