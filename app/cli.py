@@ -391,6 +391,15 @@ def _diagnose(args: argparse.Namespace) -> int:
               + f"; E {r['how_far']['e_before']:.3g} → {r['how_far']['e_after']:.3g} "
               + (f"with {' + '.join(m)} " if (m := r["how_far"].get("model", v["effects"])) != v["effects"] else "")
               + f"(floor {r['how_far']['e_floor']:.3g})")
+        for title, rows in (("each candidate against the baseline (GC, its 90 % CI, ΔBIC):", r["ranking"]),
+                            ("added one by one, each against the model with those above it:",
+                             r.get("combination", []))):
+            print("  " + title)
+            for c in rows:
+                lo, hi = c["gap_closure_ci90"]
+                print(f"    {c['effect']:<20} GC {c['gap_closure']:7.3f} [{lo:.3f}, {hi:.3f}]  "
+                      f"ΔBIC {c['delta_bic']:9.4g}  "
+                      + ("significant" if c["significant"] else "no: " + "; ".join(c["not_significant_because"])))
         split = r["experiments"].get("split")
         if split:
             print(f"  held out: {', '.join(r['experiments']['held_out'])} ({split})")

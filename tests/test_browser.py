@@ -544,6 +544,10 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     page.evaluate("rep => show(rep)", rep)
     expect(page.locator("#ranking")).to_contain_text("GC without the effect")
     expect(page.locator("#ranking")).to_contain_text("0.0123")
+    # a candidate that is not significant says which tests it failed
+    why = [c["not_significant_because"] for c in rep["ranking"] if not c["significant"]]
+    assert why and all(why), rep["ranking"]
+    expect(page.locator("#ranking")).to_contain_text("(" + "; ".join(why[-1]) + ")")
     expect(page.locator("#detail")).to_contain_text(
         "heat_transfer's fit, with the effect taken out, still closes 0.202 of the gap: the baseline's own "
         "parameters, refitted beside it, did; the baseline was recalibrated from there and every candidate judged "

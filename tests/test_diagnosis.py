@@ -150,6 +150,7 @@ def test_the_core_recovers_known_effects_and_ranks_them_first() -> None:
     assert p["baseline_params"]["F_v"] == pytest.approx(200.0, rel=0.03)
     assert r["ranking"][0]["effect"] == "inertia" and r["ranking"][0]["gap_closure"] > 0.9
     assert r["how_far"]["e_after"] < 0.5 * r["how_far"]["e_before"]
+    _check_reasons(r)
 
 
 def _with_gaps(e: Experiment, seed: int) -> Experiment:
@@ -184,15 +185,34 @@ def test_logs_with_skipped_samples_are_put_on_their_clock_and_said_to_be() -> No
     assert sorted(r["experiments"]["irregular_sampling"]) == sorted(e.name for e in gapped)
 
 
+def _check_reasons(report: dict[str, object]) -> int:
+    """Each candidate's ``not_significant_because`` names exactly the tests its numbers fail; returns how
+    many reasons were given."""
+    given = 0
+    for c in report["ranking"]:  # type: ignore[attr-defined]
+        failed = {"its fit left it switched off": c["switched_off"], "ΔBIC": c["delta_bic"] <= 10.0,
+                  "its GC's 90 % CI": c["gap_closure_ci90"][0] <= 0.0, "GC ": c["gap_closure"] < 0.2,
+                  "no channel's": not c["relevant"]}
+        said = c["not_significant_because"]
+        assert (said == []) == c["significant"], c
+        if not c["significant"]:
+            assert {k for k, v in failed.items() if v} == {k for k in failed for w in said if w.startswith(k)}, c
+        given += len(said)
+    return given
+
+
 def test_the_core_says_no_significant_effect_when_there_is_none() -> None:
     false_positives = 0
+    reasons = 0
     for seed in range(10):
         exps = [_drive(100 + 10 * seed + k, 0.0, 0.0) for k in range(4)]
         r = diagnose(DriveFamily(), exps[:2], exps[2:])
         false_positives += bool(r["verdict"]["effects"])
         if not r["verdict"]["effects"]:
             assert r["verdict"]["summary"].startswith("no significant effect")
+        reasons += _check_reasons(r)  # and each candidate says which tests it failed
     assert false_positives <= 1, false_positives
+    assert reasons >= 10
 
 
 def test_a_synthetic_leak_is_found_and_its_time_constant_recovered() -> None:
@@ -587,8 +607,15 @@ def test_cwrr_diagnose_writes_the_report_contract(tmp_path: Path, capsys: pytest
 
     out = tmp_path / "report.json"
     assert main(["diagnose", str(REF / "emps"), "--json", str(out)]) == 0
-    assert "inertia + sensor_bias" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "inertia + sensor_bias" in printed
     r = json.loads(out.read_text())
+    # the ranking as a table, each candidate significant or saying why not
+    for c in r["ranking"]:
+        line = next(ln for ln in printed.splitlines() if ln.startswith("    " + c["effect"] + " "))
+        assert f"GC {c['gap_closure']:7.3f}" in line
+        assert line.endswith("significant") if c["significant"] else ("no: " + "; ".join(c["not_significant_because"])
+                                                                     in line)
     assert set(r["baseline"]["nrmse"]) == {"force"}
     assert {"effect", "gap_closure", "significant", "params"} <= set(r["ranking"][0])
     assert r["verdict"]["effects"] == ["inertia", "sensor_bias"] and r["verdict"]["confusable_with"] == []

@@ -607,10 +607,12 @@ class Candidate:
     relevant: bool
     switched_off: bool = False
     rebased_gap_closure: float | None = None
+    why_not: tuple[str, ...] = ()  # the significance tests it failed, in words (empty when significant)
 
     def as_dict(self) -> dict[str, Any]:
         """JSON view."""
         return {"effect": self.effect, "gap_closure": self.gap_closure, "switched_off": self.switched_off,
+                "not_significant_because": list(self.why_not),
                 "rebased_gap_closure": self.rebased_gap_closure,
                 "params_at_bound": [n for n in self.fit.at_bound if "." in n], "gap_closure_ci90": list(self.ci),
                 "delta_bic": self.delta_bic, "significant": self.significant, "relevant": self.relevant,
@@ -680,7 +682,27 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     gone = switched_off(new, f.params)
     sig = dbic > BIC_STRONG and ci[0] > 0.0 and gc >= GC_MIN and relevant and not gone
     return Candidate(effects[-1], f, sc, gc, ci, dbic, dict(zip(family.channels, map(float, nr), strict=True)),
-                     imp, sig, relevant, gone, _rebased_gc(family, held, ref, ref_sc, f, new, norm, blocks))
+                     imp, sig, relevant, gone, _rebased_gc(family, held, ref, ref_sc, f, new, norm, blocks),
+                     () if sig else _why_not(family, gc, ci, dbic, imp, relevant, gone))
+
+
+def _why_not(family: Family, gc: float, ci: tuple[float, float], dbic: float, imp: dict[str, float],
+             relevant: bool, gone: bool) -> tuple[str, ...]:
+    """The significance tests a candidate failed, in words a report's reader can check against its numbers."""
+    out = []
+    if gone:
+        out.append("its fit left it switched off")
+    if dbic <= BIC_STRONG:
+        out.append(f"ΔBIC {dbic:.3g} ≤ {BIC_STRONG:g}")
+    if ci[0] <= 0.0:
+        out.append(f"its GC's 90 % CI reaches {ci[0]:.3g} ≤ 0")
+    if gc < GC_MIN:
+        out.append(f"GC {gc:.3g} < {GC_MIN:g}")
+    if not relevant:
+        best = max(family.channels, key=lambda c: imp[c] - family.relevance.get(c, 0.0))
+        out.append(f"no channel's held-out RMS error falls by more than what matters on the rig (most: {best} "
+                   f"by {imp[best]:.3g}, against {family.relevance.get(best, 0.0):g})")
+    return tuple(out)
 
 
 def _rebased_gc(family: Family, held: list[Any], ref: Fit, ref_sc: Scores, f: Fit, new: list[Param], norm: _Norm,
