@@ -191,8 +191,8 @@ def _check_reasons(report: dict[str, object]) -> int:
     given = 0
     for c in report["ranking"]:  # type: ignore[attr-defined]
         failed = {"its fit left it switched off": c["switched_off"], "ΔBIC": c["delta_bic"] <= 10.0,
-                  "its GC's 90 % CI": c["gap_closure_ci90"][0] <= 0.0, "GC ": c["gap_closure"] < 0.2,
-                  "no channel's": not c["relevant"]}
+                  "GC's CI": c["gap_closure_ci90"][0] <= 0.0, "GC ": c["gap_closure"] < 0.2,
+                  "RMS gain": not c["relevant"]}
         said = c["not_significant_because"]
         assert (said == []) == c["significant"], c
         if not c["significant"]:

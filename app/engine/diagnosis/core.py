@@ -695,13 +695,13 @@ def _why_not(family: Family, gc: float, ci: tuple[float, float], dbic: float, im
     if dbic <= BIC_STRONG:
         out.append(f"ΔBIC {dbic:.3g} ≤ {BIC_STRONG:g}")
     if ci[0] <= 0.0:
-        out.append(f"its GC's 90 % CI reaches {ci[0]:.3g} ≤ 0")
+        out.append(f"GC's CI reaches {ci[0]:.3g} ≤ 0")
     if gc < GC_MIN:
         out.append(f"GC {gc:.3g} < {GC_MIN:g}")
     if not relevant:
         best = max(family.channels, key=lambda c: imp[c] - family.relevance.get(c, 0.0))
-        out.append(f"no channel's held-out RMS error falls by more than what matters on the rig (most: {best} "
-                   f"by {imp[best]:.3g}, against {family.relevance.get(best, 0.0):g})")
+        out.append(f"RMS gain under what matters on the rig (most: {best} {imp[best]:.3g} ≤ "
+                   f"{family.relevance.get(best, 0.0):g})")
     return tuple(out)
 
 
