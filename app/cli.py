@@ -400,6 +400,12 @@ def _diagnose(args: argparse.Namespace) -> int:
                 print(f"    {c['effect']:<20} GC {c['gap_closure']:7.3f} [{lo:.3f}, {hi:.3f}]  "
                       f"ΔBIC {c['delta_bic']:9.4g}  "
                       + ("significant" if c["significant"] else "no: " + "; ".join(c["not_significant_because"])))
+        leak = r.get("leak_on_the_rig")
+        if leak:
+            tau = leak["tau_s"]
+            print(f"  the leak on the rig: τ {tau:.0f} s" if tau >= 100.0 else f"  the leak on the rig: τ {tau:.3g} s",
+                  f"closed at {leak['working_pressure_bar']:g} bar abs, the chamber would lose "
+                  f"{leak['loss_bar']:.2g} bar in {leak['horizon_s']:g} s: {leak['on_the_rig']}", sep="; ")
         split = r["experiments"].get("split")
         if split:
             print(f"  held out: {', '.join(r['experiments']['held_out'])} ({split})")

@@ -226,10 +226,19 @@ def test_a_synthetic_leak_is_found_and_its_time_constant_recovered() -> None:
     r = diagnose(fam, [a], [b])
     assert r["verdict"]["effects"][0] == "external_leakage"
     assert r["ranking"][0]["params"]["external_leakage.tau"] == pytest.approx(400.0, rel=0.05)
+    # on the rig: closed at 3 bar abs for a minute it loses 3·(1 − e^(−60/τ)) while choked (above
+    # P_atm/b = 1.92 bar), 0.42 bar at τ = 400 s: more than the 0.01 bar that can be acted on, less
+    # than half the gauge pressure
+    leak = fam.leak_on_the_rig(r)
+    assert leak is not None and leak["on_the_rig"] == "matters"
+    assert leak["loss_bar"] == pytest.approx(3.0 * (1.0 - math.exp(-60.0 / leak["tau_s"])), rel=1e-4)
+    assert fam.leak_on_the_rig(r, horizon_s=1.0)["on_the_rig"] == "negligible"  # type: ignore[index]
+    assert fam.leak_on_the_rig(r, horizon_s=600.0)["on_the_rig"] == "dominant"  # type: ignore[index]
     flat = Experiment("tight", t, {}, {"p": 8.5 + rng.normal(0, 0.002, t.size)}, {"p_atm_bar": 1.01325})
     a, b = split_time(flat)
     r = diagnose(fam, [a], [b])
     assert r["verdict"]["effects"] == [] and r["experiments"]["flat_channels"] == {}
+    assert fam.leak_on_the_rig(r) is None  # no leak in the verdict, none to weigh
 
 
 def test_a_channel_that_reads_one_value_throughout_is_named_in_the_report() -> None:
@@ -598,6 +607,12 @@ def test_chamber_leaks_fast_printed_chambers_leak_dominantly_aluminium_slowly() 
     # 0.031 bar lost in 151 s: a time constant > 100× the record; on 150 s the tool cannot tell this
     # slow loss from a thermal drift and says so
     assert tau_al > 1e4
+    # and on the rig it is too slow to act on: closed at 3 bar abs for a minute, under 0.01 bar lost,
+    # where the fast printed chambers lose half their gauge pressure or more
+    leak = ChamberFamily().leak_on_the_rig(al)
+    assert leak is not None and leak["on_the_rig"] == "negligible" and leak["loss_bar"] < 0.01
+    for name in ("Ultimaker_015", "Ultimaker_020"):
+        assert ChamberFamily().leak_on_the_rig(out[name])["on_the_rig"] == "dominant"  # type: ignore[index]
     assert "heat_transfer" in al["verdict"]["confusable_with"] or al["verdict"]["effects"] == []
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from scipy.integrate import solve_ivp
@@ -27,6 +28,8 @@ from app.engine.diagnosis.core import Param, white_noise_sd
 from app.engine.diagnosis.logs import Experiment, on_uniform_grid, unscored_near_fills
 
 B_CRIT = 0.528  # critical pressure ratio of an ideal orifice (Eq 2.3), for an unknown leak path
+WORKING_PRESSURE_BAR = 3.0  # P_w of the thesis's HIL tests [bar abs] (SPEC §1)
+LEAK_HORIZON_S = 60.0  # how long a chamber stays closed when a leak's effect on the rig is judged [s]
 
 
 def split_time(exp: Experiment, frac: float = 0.6) -> tuple[Experiment, Experiment]:
@@ -101,20 +104,55 @@ class ChamberFamily:
     def inputs(self, prep: _ChamberPrep) -> dict[str, np.ndarray]:
         return {}
 
+    @staticmethod
+    def _leak_decay(p0: float, tau: float, p_atm: float, t: np.ndarray) -> np.ndarray:
+        """Pressure [bar abs] at times ``t`` [s] of a chamber leaking through an orifice (choked above P_atm/b)."""
+
+        def rhs(_t: float, y: np.ndarray) -> np.ndarray:
+            r = p_atm / max(y[0], 1e-6)
+            psi = 1.0 if r <= B_CRIT else math.sqrt(max(0.0, 1.0 - ((r - B_CRIT) / (1.0 - B_CRIT)) ** 2))
+            return np.array([-y[0] / tau * psi if y[0] > p_atm else 0.0])
+
+        sol = solve_ivp(rhs, (0.0, float(t[-1])), [p0], t_eval=t, rtol=1e-8, atol=1e-9, method="LSODA")
+        return sol.y[0] if sol.success and sol.y.shape[1] == t.size else np.full(t.shape, np.nan)
+
+    def leak_on_the_rig(self, report: dict[str, Any], working_pressure_bar: float = WORKING_PRESSURE_BAR,
+                        horizon_s: float = LEAK_HORIZON_S, p_atm_bar: float = 1.01325) -> dict[str, Any] | None:
+        """What a chamber's fitted leak would do on the rig: the pressure a closed chamber loses.
+
+        A leak can be beyond doubt in a record taken at 7–8 bar over minutes and still be too
+        slow to act on at the rig's working pressure; this says which, by the family's relevance.
+
+        Args:
+            report: The chamber's diagnosis report.
+            working_pressure_bar: Pressure the chamber is closed at [bar abs] (the thesis's HIL
+                tests' P_w, SPEC §1).
+            horizon_s: How long it stays closed [s] (a minute of exercise).
+            p_atm_bar: Atmospheric pressure [bar abs].
+
+        Returns:
+            ``None`` when the verdict names no leak (nor one it cannot tell from its
+            effect); else ``tau_s`` [s], ``loss_bar`` [bar]
+            over the horizon, the conditions, and ``on_the_rig``: ``negligible`` (a loss under the
+            relevance, 0.01 bar), ``dominant`` (half the gauge pressure or more) or ``matters``.
+        """
+        v = report["verdict"]
+        c = next((c for c in report["ranking"] if c["effect"] == "external_leakage"), None)
+        if c is None or "external_leakage" not in (*v["effects"], *v["confusable_with"]):
+            return None
+        tau = float(c["params"]["external_leakage.tau"])
+        end = self._leak_decay(working_pressure_bar, tau, p_atm_bar, np.array([0.0, horizon_s]))[-1]
+        loss = float(working_pressure_bar - end)
+        gauge = working_pressure_bar - p_atm_bar
+        kind = ("negligible" if loss < self.relevance["p"] else "dominant" if loss >= 0.5 * gauge else "matters")
+        return {"tau_s": tau, "working_pressure_bar": working_pressure_bar, "horizon_s": horizon_s,
+                "loss_bar": loss, "on_the_rig": kind}
+
     def predict(self, prep: _ChamberPrep, x: dict[str, float], effects: tuple[str, ...]) -> dict[str, np.ndarray]:
         t = prep.t
         p = np.full(t.shape, x["p0"])
         if "external_leakage" in effects:
-            tau = x["external_leakage.tau"]
-            pa = prep.p_atm
-
-            def rhs(_t: float, y: np.ndarray) -> np.ndarray:
-                r = pa / max(y[0], 1e-6)
-                psi = 1.0 if r <= B_CRIT else math.sqrt(max(0.0, 1.0 - ((r - B_CRIT) / (1.0 - B_CRIT)) ** 2))
-                return np.array([-y[0] / tau * psi if y[0] > pa else 0.0])
-
-            sol = solve_ivp(rhs, (0.0, float(t[-1])), [x["p0"]], t_eval=t, rtol=1e-8, atol=1e-9, method="LSODA")
-            p = sol.y[0] if sol.success and sol.y.shape[1] == t.size else np.full(t.shape, np.nan)
+            p = self._leak_decay(x["p0"], x["external_leakage.tau"], prep.p_atm, t)
         if "heat_transfer" in effects:
             p = p - x["heat_transfer.dp"] * (1.0 - np.exp(-t / x["heat_transfer.tau"]))
         if "sensor_bias" in effects:

@@ -99,7 +99,9 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
         reports = {}
         for p in sorted(d.glob("*.csv")):
             a, b = split_time(read_chamber_leak(p))
-            reports[p.stem] = diagnose(ChamberFamily(), [a], [b], protocol=PROTOCOL, stop=stop)
+            fam = ChamberFamily()
+            rep = diagnose(fam, [a], [b], protocol=PROTOCOL, stop=stop)
+            reports[p.stem] = rep | {"leak_on_the_rig": fam.leak_on_the_rig(rep)}
         return {"adapter": "chamber_leak", "reports": reports}
     family = RotaryFamily(bounds=bounds)  # refuses a bad bound before the logs are read
     exps = read_logdir(d)  # refuses malformed logs with the problem named
