@@ -112,6 +112,10 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     # the first connect of a fresh install compiles the simulator's kernels (numba cache) before the loop starts
     expect(page.locator("#state")).to_have_text("idle", timeout=60000)
     expect(page.locator("#estimate")).to_be_enabled()  # the form is complete and the rig is idle
+    # the GUI's "please connect to proceed", once connected, says what to press instead
+    expect(page.locator("#ident-msg")).to_have_text(
+        "Parameters has been defined successfully, please connect to proceed. The station is connected: Run "
+        "identification starts the experiments.")
     # the viser live plots and 3-D handle are one click away; open them before the exercise
     link = page.locator("#viser-link")
     expect(link).to_be_visible()
