@@ -23,10 +23,13 @@ Its nominal values are the datasheet and thesis numbers, and each rig draws
 its own ±15 % errors on the dead volumes and flow capacities. Its effects
 are written here too: a chamber-to-atmosphere orifice (``external_leakage``),
 wall heat exchange with an energy balance per chamber (``heat_transfer``),
-a pressure-sensor offset (``sensor_bias``) and a heavier handle
-(``inertia``). The open-loop protocol experiments (all but the isotonic
-workout, whose Default controller is ours) are run on it, written as station
-logs and diagnosed by ``cwrr diagnose``'s own path.
+pressure- and torque-sensor offsets (``sensor_bias``), a heavier handle
+(``inertia``), an orifice across the vane (``vane_leakage``), a supply that
+sags with the flow drawn (``supply_droop``) and first-order lags on the
+valve commands (``valve_dynamics``); not tubes nor pre-sliding friction.
+The open-loop protocol experiments (all but the isotonic workout, whose
+Default controller is ours) are run on it, written as station logs and
+diagnosed by ``cwrr diagnose``'s own path.
 
 Run: ``python bench/independent_rig.py [--seeds 3] [--scale 1.0] [--out FILE]`` in the project
 environment; prints one JSON object (and writes it to ``--out``).
@@ -93,7 +96,8 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
     k: 0 dead volume a, 1 dead volume b [m³], 2 line volume [m³], 3 PRV C, 4 PRV b, 5 DCV C, 6 DCV b
     [m³/(s·Pa), -], 7 supply [Pa], 8 inertia [kg·m²], 9 leak C [m³/(s·Pa)], 10 h·A [W/K] (0: isothermal),
     11 p_a sensor offset [bar], 12 p_b sensor offset [bar], 13 the DCV's opening at 5 V [-], 14 torque sensor
-    offset [N·m].
+    offset [N·m], 15 vane leak C [m³/(s·Pa)], 16 supply droop [Pa/(kg/s)], 17 its time constant [s], 18 DCV
+    and 19 PRV command lags [s] (0: none).
     """
     n = cmds.shape[0]
     sub = int(round(1.0 / (RATE_HZ * H)))
@@ -104,6 +108,9 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
     vb0 = k[1] + A_V_R * THETA_MAX
     m = np.array([pw * va0 / (R * T_ATM), pw * vb0 / (R * T_ATM)])
     x = np.zeros(2)
+    ps = k[7]
+    zf = cmds[0, 0:2].copy()  # the valves' commands as their lags have them
+    uf = cmds[0, 2:4].copy()
     th = 0.0
     w = 0.0
     w_est = 0.0
@@ -126,23 +133,30 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
         q = 10.0 / 65536.0 * 2.0  # 16-bit over ±10 V, 5 V for 10 bar: bar per count
         out[i, 5] = round((pa / BAR + k[11] + 0.003 * noise[i, 0]) / q) * q
         out[i, 6] = round((pb / BAR + k[12] + 0.003 * noise[i, 1]) / q) * q
-        out[i, 7] = round((k[7] / BAR + 0.003 * noise[i, 2]) / q) * q
+        out[i, 7] = round((ps / BAR + 0.003 * noise[i, 2]) / q) * q
         out[i, 8] = th_q
         out[i, 9] = w_est
         out[i, 10] = ti + k[14] + 0.01 * noise[i, 3]
-        z = cmds[i, 0:2]
-        u = cmds[i, 2:4]
         for _ in range(sub):
+            for s in range(2):
+                zf[s] = cmds[i, s] if k[19] <= 0.0 else zf[s] + (cmds[i, s] - zf[s]) * H / k[19]
+                uf[s] = cmds[i, 2 + s] if k[18] <= 0.0 else uf[s] + (cmds[i, 2 + s] - uf[s]) * H / k[18]
+            z = zf
+            u = uf
             vol = (k[0] + A_V_R * (th + THETA_MAX), k[1] + A_V_R * (THETA_MAX - th))
             dvol = (A_V_R * w, -A_V_R * w)
             pc = (m[0] * R * tc[0] / vol[0], m[1] * R * tc[1] / vol[1])
+            q_vl = _iso(pc[0], pc[1], k[15], 0.5) if k[15] > 0.0 else 0.0  # across the vane, a → b
+            q_sup = 0.0
             for s in range(2):
                 # PRV: proportional spool past a ±0.02 bar dead zone, 4 ms lag
                 e = (P_ATM + min(max(z[s], 0.0), 10.0) * BAR) - po[s]
                 ez = e - 0.02 * BAR if e > 0.02 * BAR else (e + 0.02 * BAR if e < -0.02 * BAR else 0.0)
                 xc = min(max(2.0 * ez / BAR, -1.0), 1.0)
                 x[s] += (xc - x[s]) * H / 0.004
-                q_prv = _iso(k[7], po[s], k[3] * x[s], k[4]) if x[s] > 0.0 else -_iso(po[s], P_ATM, -k[3] * x[s], k[4])
+                q_prv = _iso(ps, po[s], k[3] * x[s], k[4]) if x[s] > 0.0 else -_iso(po[s], P_ATM, -k[3] * x[s], k[4])
+                if x[s] > 0.0:
+                    q_sup += q_prv
                 # DCV: chamber a fills below 5 V, chamber b above; linear past a 0.2 V dead band, a
                 # clearance leak at centre to both ports
                 d = (5.0 - u[s]) if s == 0 else (u[s] - 5.0)
@@ -152,7 +166,7 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
                 q_out = _iso(pc[s], P_ATM, k[5] * a_exh, k[6])
                 q_leak = _iso(pc[s], P_ATM, k[9], 0.5) if k[9] > 0.0 else 0.0
                 po[s] += (q_prv - q_in) * R * T_ATM / k[2] * H
-                dm = q_in - q_out - q_leak
+                dm = q_in - q_out - q_leak + (-q_vl if s == 0 else q_vl)
                 if k[10] > 0.0:
                     # energy balance: inflow brings the line's temperature, outflow takes the chamber's
                     t_in = T_ATM if q_in > 0.0 else tc[s]
@@ -163,6 +177,9 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
                     m[s] = m_new
                 else:
                     m[s] += dm * H
+            # the shop supply sags with the flow drawn, through a first-order lag
+            if k[16] > 0.0:
+                ps += ((k[7] - k[16] * q_sup) - ps) * H / k[17]
             # mechanics: Karnopp stick-slip with the Stribeck curve, end stops
             tp = (pc[0] - pc[1]) * A_V_R
             tu = 20.0 * (np.interp(t, prog_t, prog_pos) - th) - 0.8 * w
@@ -195,6 +212,9 @@ EFFECTS: dict[str, tuple[dict[int, float], dict[int, float]]] = {
     "heat_transfer": ({10: 0.3}, {10: 0.05}),
     "sensor_bias": ({11: 0.05, 12: -0.03}, {11: 0.15, 12: 0.1, 14: -0.3}),
     "inertia": ({8: 0.0025 + 0.005}, {8: 0.0025 + 0.015}),
+    "vane_leakage": ({15: lpm_per_bar(0.02)}, {15: lpm_per_bar(0.06)}),
+    "supply_droop": ({16: 0.3 * BAR / 1e-3, 17: 0.05}, {16: 1.0 * BAR / 1e-3, 17: 0.1}),
+    "valve_dynamics": ({18: 0.01, 19: 0.03}, {18: 0.03, 19: 0.1}),
 }
 
 
@@ -215,7 +235,7 @@ def rig_constants(seed: int, effect: str, centre_leak: float = 0.005, magnitude:
 
     dv = err()
     k = np.array([3e-6 * dv, 3e-6 * dv, 8e-6, lpm_per_bar(4.0 * err()), 0.3, lpm_per_bar(3.1 * err()), 0.26,
-                  8.0 * BAR, 0.0025, 0.0, 0.0, 0.0, 0.0, centre_leak, 0.0])
+                  8.0 * BAR, 0.0025, 0.0, 0.0, 0.0, 0.0, centre_leak, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
     for i, v in EFFECTS[effect][magnitude - 1].items():
         k[i] = v
     return k
