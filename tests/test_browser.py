@@ -552,6 +552,11 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     why = [c["not_significant_because"] for c in rep["ranking"] if not c["significant"]]
     assert why and all(why), rep["ranking"]
     expect(page.locator("#ranking")).to_contain_text("(" + "; ".join(why[-1]) + ")")
+    # where the gap lies, per held-out log too, with its share of each channel's squared error
+    for name in rep["experiments"]["held_out"]:
+        share = round(100 * rep["where"][0]["experiments"][name]["share"])
+        expect(page.locator("#where-logs")).to_contain_text(f"{name}")
+        expect(page.locator("#where-logs tr", has_text=name)).to_contain_text(f"({share} %)")
     expect(page.locator("#detail")).to_contain_text(
         "heat_transfer's fit, with the effect taken out, still closes 0.202 of the gap: the baseline's own "
         "parameters, refitted beside it, did; the baseline was recalibrated from there and every candidate judged "

@@ -153,6 +153,16 @@ def test_the_core_recovers_known_effects_and_ranks_them_first() -> None:
     _check_reasons(r)
 
 
+def test_where_says_which_held_out_log_the_gap_lies_in() -> None:
+    # the drive's offset in one held-out log only: the baseline's residual lies there, not in its twin
+    exps = [_drive(s, 0.0, 0.0) for s in range(4)] + [_drive(4, 0.0, -8.0)]
+    r = diagnose(DriveFamily(), exps[:3], exps[3:])
+    logs = r["where"][0]["experiments"]
+    assert set(logs) == {"drive3", "drive4"}
+    assert logs["drive4"]["share"] > 0.8 and logs["drive4"]["rms"] > 3.0 * logs["drive3"]["rms"], logs
+    assert logs["drive3"]["share"] + logs["drive4"]["share"] == pytest.approx(1.0)
+
+
 def _with_gaps(e: Experiment, seed: int) -> Experiment:
     """``e`` as a paced engine that skipped periods would log it: 3 % of samples and one 50 ms stretch gone."""
     keep = np.random.default_rng(seed).uniform(size=len(e.t)) > 0.03

@@ -498,6 +498,9 @@ def test_withheld_sensor_bias_through_the_cli(tmp_path: Path, capsys: pytest.Cap
     assert tq["floor"] < 0.8 * tq["noise"], tq
     assert sorted(r["experiments"]["held_out"]) == sorted(f"{k}-2" for k in VISIBLE)
     assert r["experiments"]["split"] == "the last repetition of every experiment run more than once"
+    for w in r["where"]:  # and per held-out log, whose shares of the squared error add up
+        assert set(w["experiments"]) == set(r["experiments"]["held_out"]), w["experiments"]
+        assert sum(e["share"] for e in w["experiments"].values()) == pytest.approx(1.0)
     assert "motion" in r["experiments"]["excites"]["friction_sweep-1"]
     assert "shut after a fast fill or vent" in r["experiments"]["excites"]["fill_shut-2"]
     assert "held out: " in capsys.readouterr().out  # which logs scored the verdict, and why those

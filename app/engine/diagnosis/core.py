@@ -538,17 +538,22 @@ def ljung_box(r: np.ndarray, lags: int = 10) -> tuple[list[float], float]:
     return ac, float(stats.chi2.sf(q, lags))
 
 
-def where(family: Family, preps: list[Any], f: Fit, floor: np.ndarray) -> list[dict[str, Any]]:
-    """Residuals of fit ``f`` per channel and regime, whiteness and input cross-correlation.
+def where(family: Family, preps: list[Any], f: Fit, floor: np.ndarray,
+          names: list[str] | None = None) -> list[dict[str, Any]]:
+    """Residuals of fit ``f`` per channel, regime and log, whiteness and input cross-correlation.
 
     Each channel's ``noise`` is its sensor's noise SD, ``floor`` the RMS that
-    noise alone leaves a right model, to which ``rms`` compares.
+    noise alone leaves a right model, to which ``rms`` compares. Under
+    ``experiments`` each log's RMS and its ``share`` of the channel's summed
+    squared residual: which experiment the gap lies in (on the rig model of
+    ``bench/independent_rig.py`` the DCV steps carried 80 % of p_a's).
 
     Args:
         family: The rig family.
         preps: Prepared logs.
         f: The fit whose residuals are read.
         floor: :func:`noise_floor` of ``preps``, per channel of ``family.channels``.
+        names: The logs' names (default: their order).
     """
     out: list[dict[str, Any]] = []
     res = {c: [] for c in family.channels}  # type: dict[str, list[np.ndarray]]
@@ -571,7 +576,14 @@ def where(family: Family, preps: list[Any], f: Fit, floor: np.ndarray) -> list[d
         ac, p_white = ljung_box(r)
         entry: dict[str, Any] = {"channel": c, "rms": float(np.sqrt(np.nanmean(r ** 2))),
                                  "bias": float(np.nanmean(r)), "noise": noise[c], "floor": float(fl),
-                                 "autocorr_lag1_10": ac, "ljung_box_p": p_white, "regimes": {}, "input_xcorr": {}}
+                                 "autocorr_lag1_10": ac, "ljung_box_p": p_white, "regimes": {}, "input_xcorr": {},
+                                 "experiments": {}}
+        total = float(np.nansum(r ** 2))
+        for j, rj in enumerate(res[c]):
+            if np.isfinite(rj).any():
+                sq = float(np.nansum(rj ** 2))
+                entry["experiments"][names[j] if names else str(j)] = {
+                    "rms": float(np.sqrt(np.nanmean(rj ** 2))), "share": sq / total if total > 0.0 else 0.0}
         for k, ms in masks.items():
             mk = np.concatenate(ms) & np.isfinite(r)  # unscored samples (NaN) belong to no regime
             if mk.sum() >= 5:
@@ -1134,7 +1146,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         "baseline": {"nrmse": dict(zip(chans, map(float, nr_base), strict=True)), "e": e_base,
                      "identifiability": base.identifiability(), "gap": gap},
         "noise_floor": {"nrmse": dict(zip(chans, map(float, floor / spread), strict=True)), "e": e_floor},
-        "where": where(family, held, base, floor),
+        "where": where(family, held, base, floor, [getattr(e, "name", str(i)) for i, e in enumerate(held_exps)]),
         # an effect taken out of the verdict for an alternative keeps its single fit's significance
         # against the baseline here, and says what took its place
         "ranking": [c.as_dict() | ({"dropped_for": dropped[c.effect]} if c.effect in dropped else {})
