@@ -391,6 +391,14 @@ def _diagnose(args: argparse.Namespace) -> int:
               + f"; E {r['how_far']['e_before']:.3g} → {r['how_far']['e_after']:.3g} "
               + (f"with {' + '.join(m)} " if (m := r["how_far"].get("model", v["effects"])) != v["effects"] else "")
               + f"(floor {r['how_far']['e_floor']:.3g})")
+        # where the baseline's error lies: each channel against its floor, and the held-out log most of it is in
+        parts = []
+        for w in r["where"]:
+            logs = w.get("experiments", {})
+            top = max(logs.items(), key=lambda kv: kv[1]["share"]) if len(logs) > 1 else None
+            parts.append(f"{w['channel']} {w['rms']:.3g} (floor {w['floor']:.3g}"
+                         + (f"; {100 * top[1]['share']:.0f} % in {top[0]})" if top else ")"))
+        print("  baseline RMS: " + ", ".join(parts))
         for title, rows in (("each candidate against the baseline (GC, its 90 % CI, ΔBIC):", r["ranking"]),
                             ("added one by one, each against the model with those above it:",
                              r.get("combination", []))):

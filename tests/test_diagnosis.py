@@ -634,6 +634,7 @@ def test_cwrr_diagnose_writes_the_report_contract(tmp_path: Path, capsys: pytest
     assert main(["diagnose", str(REF / "emps"), "--json", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "inertia + sensor_bias" in printed
+    assert "  baseline RMS: force " in printed  # where the error lies, against the floor
     r = json.loads(out.read_text())
     # the ranking as a table, each candidate significant or saying why not
     for c in r["ranking"]:
