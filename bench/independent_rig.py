@@ -263,14 +263,16 @@ def run_rig(outdir: Path, seed: int, effect: str, scale: float, centre_leak: flo
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, default=3, help="effect-free rigs (each effect runs on the first)")
+    ap.add_argument("--seeds", type=int, default=3, help="effect-free rigs (seeds 0, 1, …)")
+    ap.add_argument("--effect-seed", type=int, default=0, help="the rig's errors and noise for the effect cases")
     ap.add_argument("--scale", type=float, default=1.0, help="protocol duration factor")
     ap.add_argument("--effects", nargs="*", default=[e for e in EFFECTS if e != "none"])
     ap.add_argument("--centre-leak", type=float, default=0.0, help="the DCV's opening at 5 V [-]")
     ap.add_argument("--magnitudes", type=int, nargs="*", default=[1, 2], choices=[1, 2])
     ap.add_argument("--out", default=None, help="also write the JSON here")
     args = ap.parse_args(argv)
-    cases = [("none", s, 1) for s in range(args.seeds)] + [(e, 0, m) for m in args.magnitudes for e in args.effects]
+    cases = [("none", s, 1) for s in range(args.seeds)] + [(e, args.effect_seed, m) for m in args.magnitudes
+                                                                 for e in args.effects]
     rows = []
     for effect, seed, mag in cases:
         with tempfile.TemporaryDirectory() as d:
