@@ -89,6 +89,18 @@ def _iso(p_u: float, p_d: float, c: float, b: float) -> float:
 
 
 @njit(cache=True)
+def _volumes(th: float, k: np.ndarray) -> tuple[float, float]:
+    """Chamber volumes [m³] at vane angle ``th`` [rad]."""
+    return k[0] + A_V_R * (th + THETA_MAX), k[1] + A_V_R * (THETA_MAX - th)
+
+
+@njit(cache=True)
+def _user(t: float, th: float, w: float, prog_t: np.ndarray, prog_pos: np.ndarray) -> float:
+    """The user's torque on the handle [N·m]: a spring-damper towards the program's angle, limited."""
+    return min(max(20.0 * (np.interp(t, prog_t, prog_pos) - th) - 0.8 * w, -8.0), 8.0)
+
+
+@njit(cache=True)
 def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.ndarray, noise: np.ndarray,
               pw: float, out: np.ndarray) -> None:
     """Run one experiment; ``out`` (n, 11) gets the log rows.
@@ -104,8 +116,7 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
     # state: line pressures, chamber masses and temperatures, spools, angle, speed
     po = np.array([pw, pw])
     tc = np.array([T_ATM, T_ATM])
-    va0 = k[0] + A_V_R * THETA_MAX
-    vb0 = k[1] + A_V_R * THETA_MAX
+    va0, vb0 = _volumes(0.0, k)
     m = np.array([pw * va0 / (R * T_ATM), pw * vb0 / (R * T_ATM)])
     x = np.zeros(2)
     ps = k[7]
@@ -116,21 +127,20 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
     w_est = 0.0
     th_prev = 0.0
     a_f = 1.0 - math.exp(-2.0 * math.pi * 25.0 / RATE_HZ)  # the station's 25 Hz speed filter
+    q = 10.0 / 65536.0 * 2.0  # 16-bit over ±10 V, 5 V for 10 bar: bar per count
     t = 0.0
     for i in range(n):
         # sample at the start of the period, then hold the commands over it
-        vol = (k[0] + A_V_R * (th + THETA_MAX), k[1] + A_V_R * (THETA_MAX - th))
+        vol = _volumes(th, k)
         pa = m[0] * R * tc[0] / vol[0]
         pb = m[1] * R * tc[1] / vol[1]
-        ti = 20.0 * (np.interp(t, prog_t, prog_pos) - th) - 0.8 * w
-        ti = min(max(ti, -8.0), 8.0)
+        ti = _user(t, th, w, prog_t, prog_pos)
         th_q = round(th / (2.0 * math.pi / 4096.0)) * (2.0 * math.pi / 4096.0)
         if i > 0:
             w_est += a_f * ((th_q - th_prev) * RATE_HZ - w_est)
         th_prev = th_q
         out[i, 0] = t
         out[i, 1:5] = cmds[i]
-        q = 10.0 / 65536.0 * 2.0  # 16-bit over ±10 V, 5 V for 10 bar: bar per count
         out[i, 5] = round((pa / BAR + k[11] + 0.003 * noise[i, 0]) / q) * q
         out[i, 6] = round((pb / BAR + k[12] + 0.003 * noise[i, 1]) / q) * q
         out[i, 7] = round((ps / BAR + 0.003 * noise[i, 2]) / q) * q
@@ -141,16 +151,14 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
             for s in range(2):
                 zf[s] = cmds[i, s] if k[19] <= 0.0 else zf[s] + (cmds[i, s] - zf[s]) * H / k[19]
                 uf[s] = cmds[i, 2 + s] if k[18] <= 0.0 else uf[s] + (cmds[i, 2 + s] - uf[s]) * H / k[18]
-            z = zf
-            u = uf
-            vol = (k[0] + A_V_R * (th + THETA_MAX), k[1] + A_V_R * (THETA_MAX - th))
+            vol = _volumes(th, k)
             dvol = (A_V_R * w, -A_V_R * w)
             pc = (m[0] * R * tc[0] / vol[0], m[1] * R * tc[1] / vol[1])
             q_vl = _iso(pc[0], pc[1], k[15], 0.5) if k[15] > 0.0 else 0.0  # across the vane, a → b
             q_sup = 0.0
             for s in range(2):
                 # PRV: proportional spool past a ±0.02 bar dead zone, 4 ms lag
-                e = (P_ATM + min(max(z[s], 0.0), 10.0) * BAR) - po[s]
+                e = (P_ATM + min(max(zf[s], 0.0), 10.0) * BAR) - po[s]
                 ez = e - 0.02 * BAR if e > 0.02 * BAR else (e + 0.02 * BAR if e < -0.02 * BAR else 0.0)
                 xc = min(max(2.0 * ez / BAR, -1.0), 1.0)
                 x[s] += (xc - x[s]) * H / 0.004
@@ -159,7 +167,7 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
                     q_sup += q_prv
                 # DCV: chamber a fills below 5 V, chamber b above; linear past a 0.2 V dead band, a
                 # clearance leak at centre to both ports
-                d = (5.0 - u[s]) if s == 0 else (u[s] - 5.0)
+                d = (5.0 - uf[s]) if s == 0 else (uf[s] - 5.0)
                 a_fill = k[13] + (1.0 - k[13]) * min(max((d - 0.2) / 4.8, 0.0), 1.0)
                 a_exh = k[13] + (1.0 - k[13]) * min(max((-d - 0.2) / 4.8, 0.0), 1.0)
                 q_in = _iso(po[s], pc[s], k[5] * a_fill, k[6])
@@ -182,9 +190,7 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
                 ps += ((k[7] - k[16] * q_sup) - ps) * H / k[17]
             # mechanics: Karnopp stick-slip with the Stribeck curve, end stops
             tp = (pc[0] - pc[1]) * A_V_R
-            tu = 20.0 * (np.interp(t, prog_t, prog_pos) - th) - 0.8 * w
-            tu = min(max(tu, -8.0), 8.0)
-            drive = tp + tu
+            drive = tp + _user(t, th, w, prog_t, prog_pos)
             if abs(w) < 1e-3:
                 ts = FRICTION[0] if drive > 0.0 else FRICTION[4]
                 if abs(drive) <= ts:
