@@ -41,28 +41,28 @@ def attribute_docs(doc: str | None) -> dict[str, str]:
     return out
 
 
+def _describe_fields(schema: dict[str, Any], model: type[BaseModel]) -> None:
+    """Give each property of ``model``'s JSON schema the text its docstring's ``Attributes:`` has for it."""
+    docs = attribute_docs(model.__doc__)
+    for name, prop in schema.get("properties", {}).items():
+        if name in docs:
+            prop["description"] = docs[name]
+
+
 class Documented(BaseModel):
     """A model whose fields are described in the OpenAPI schema by its docstring's ``Attributes:``.
 
     The meaning and unit of each field are written once, in the docstring the
     code's readers see; this puts the same text where an API's users look
     (``/docs``, ``/openapi.json``). A field's own ``description`` is kept where
-    the docstring does not name it. Hand-written rather than a docstring
-    library: our docstrings have one shape, and twenty lines read it.
+    the docstring does not name it. The text is added where pydantic
+    generates the schema (``json_schema_extra``), so no model is rebuilt at
+    import to carry it. Hand-written rather than a docstring library: our
+    docstrings have one shape, and twenty lines read it.
     """
 
-    @classmethod
-    def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
-        super().__pydantic_init_subclass__(**kwargs)
-        docs = attribute_docs(cls.__doc__)
-        changed = False
-        for name, field in cls.model_fields.items():
-            text = docs.get(name)
-            if text and field.description != text:
-                field.description = text
-                changed = True
-        if changed:
-            cls.model_rebuild(force=True, raise_errors=False)
+    model_config = ConfigDict(json_schema_extra=_describe_fields)
+
 
 # who a run is for, as every request that starts one takes it
 PERSON_PATTERN = r"^[A-Za-z0-9_.-]*$"
