@@ -29,9 +29,11 @@ sags with the flow drawn (``supply_droop``) and first-order lags on the
 valve commands (``valve_dynamics``); not tubes nor pre-sliding friction.
 The open-loop protocol experiments (all but the isotonic workout, whose
 Default controller is ours) are run on it, written as station logs and
-diagnosed by ``cwrr diagnose``'s own path.
+diagnosed by ``cwrr diagnose``'s own path; ``--protocol other`` runs
+experiments written here instead (:func:`other_protocol`), once each, as
+another lab might.
 
-Run: ``python bench/independent_rig.py [--seeds 3] [--scale 1.0] [--out FILE]`` in the project
+Run: ``python bench/independent_rig.py [--seeds 3] [--scale 1.0] [--protocol other] [--out FILE]`` in the project
 environment; prints one JSON object (and writes it to ``--out``).
 """
 
@@ -267,6 +269,53 @@ def run_rig(outdir: Path, seed: int, effect: str, scale: float, centre_leak: flo
             write_log(outdir, f"{s.name}-{rep + 1}", log, meta)
 
 
+def other_protocol(rng: np.random.Generator) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+    """Experiments of a protocol other than ours, each run once at 200 Hz: (name, commands, program t, angle).
+
+    Written for this bench, not from :mod:`app.engine.diagnosis.protocol`, as
+    another lab might excite its rig: a PRV staircase on both chambers, a
+    hold with the DCVs shut at equal pressures, a swing the user leads with
+    the pressures following it, a chirp on the DCVs through their partial
+    openings, random PRV pulses while the user rocks the handle. No log
+    shuts a chamber after a fast fill, none holds the chambers apart.
+    """
+    out = []
+
+    def add(name: str, dur: float, cmd: Any, angle: Any) -> None:
+        t = np.arange(int(round(dur * RATE_HZ))) / RATE_HZ
+        pt = np.linspace(0.0, dur, 400)
+        out.append((name, np.array([cmd(x) for x in t], dtype=float), pt, np.array([angle(x) for x in pt])))
+
+    stair = [0.5, 1.5, 2.5, 3.5, 2.5, 1.5, 2.0]
+    add("staircase", 17.5, lambda x: (stair[min(int(x / 2.5), 6)],
+                                      2.0 if x < 8.0 else stair[min(int((x - 8.0) / 2.5), 6)], 0.0, 10.0),
+        lambda x: 0.0)
+    add("blocked_hold", 20.0, lambda x: (2.0, 2.0, 0.0, 10.0) if x < 3.0 else
+        ((2.0, 2.0, 5.0, 5.0) if x < 18.0 else (2.0, 2.0, 10.0, 0.0)), lambda x: 0.0)
+    add("swing", 15.0, lambda x: (2.0 + math.sin(0.6 * math.pi * x), 2.0 - math.sin(0.6 * math.pi * x), 0.0, 10.0),
+        lambda x: 0.8 * math.sin(0.6 * math.pi * x))
+    add("valve_chirp", 15.0, lambda x: (2.0, 2.0, 5.0 - 2.5 * math.sin(2.0 * math.pi * (0.2 + 0.06 * x) * x),
+                                        5.0 + 2.5 * math.sin(2.0 * math.pi * (0.2 + 0.06 * x) * x)), lambda x: 0.0)
+    ends = np.cumsum(rng.uniform(0.3, 1.5, 40))
+    levels = rng.uniform(0.5, 3.5, (40, 2))
+    add("pulses", 15.0, lambda x: (*levels[np.searchsorted(ends, x)], 0.0, 10.0),
+        lambda x: 0.3 * math.sin(0.2 * math.pi * x))
+    return out
+
+
+def run_rig_other(outdir: Path, seed: int, effect: str, magnitude: int = 1, centre_leak: float = 0.0) -> None:
+    """Write :func:`other_protocol`'s logs (each once) of one rig to ``outdir``."""
+    k = rig_constants(seed, effect, centre_leak, magnitude)
+    for j, (name, cmds, prog_t, prog_pos) in enumerate(other_protocol(np.random.default_rng(7))):
+        n = cmds.shape[0]
+        noise = np.random.default_rng(seed * 1000 + j).standard_normal((n, 4))
+        log = np.empty((n, 11))
+        _simulate(cmds, prog_t, prog_pos, k, noise, 3.0 * BAR, log)
+        meta = {"rig": "rotary", "sample_rate_hz": RATE_HZ, "p_atm_bar": P_ATM / BAR, "working_pressure_bar": 3.0,
+                "experiment": name, "human": True, "generator": "bench/independent_rig.py --protocol other"}
+        write_log(outdir, name, log, meta)
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3, help="effect-free rigs (seeds 0, 1, …)")
@@ -275,6 +324,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--effects", nargs="*", default=[e for e in EFFECTS if e != "none"])
     ap.add_argument("--centre-leak", type=float, default=0.0, help="the DCV's opening at 5 V [-]")
     ap.add_argument("--magnitudes", type=int, nargs="*", default=[1, 2], choices=[1, 2])
+    ap.add_argument("--protocol", choices=["ours", "other"], default="ours",
+                    help="our protocol's open-loop experiments run twice, or other_protocol()'s run once each")
     ap.add_argument("--out", default=None, help="also write the JSON here")
     args = ap.parse_args(argv)
     cases = [("none", s, 1) for s in range(args.seeds)] + [(e, args.effect_seed, m) for m in args.magnitudes
@@ -283,7 +334,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for effect, seed, mag in cases:
         with tempfile.TemporaryDirectory() as d:
             t0 = time.perf_counter()
-            run_rig(Path(d), seed, effect, args.scale, args.centre_leak, mag)
+            if args.protocol == "other":
+                run_rig_other(Path(d), seed, effect, mag, args.centre_leak)
+            else:
+                run_rig(Path(d), seed, effect, args.scale, args.centre_leak, mag)
             t1 = time.perf_counter()
             rep = diagnose_dir(d)
             t2 = time.perf_counter()
@@ -299,6 +353,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                          "not_significant_because": first.get("not_significant_because", [])},
                "e_before": rep["how_far"]["e_before"], "e_after": rep["how_far"]["e_after"],
                "e_floor": rep["how_far"]["e_floor"], "baseline_params": rep["baseline"].get("params"),
+               "held_out": rep["experiments"]["held_out"], "untested": rep["verdict"].get("untested", []),
                "sim_s": round(t1 - t0, 1), "diagnose_s": round(t2 - t1, 1)}
         rows.append(row)
         print(json.dumps({k: row[k] for k in ("effect", "magnitude", "seed", "verdict", "confusable_with", "rank",
@@ -308,7 +363,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     summary = {"false_positives": sum(bool(r["verdict"]) for r in nulls), "null_cases": len(nulls),
                "ranked_first": sum(r["rank"] == 1 for r in withe), "effect_cases": len(withe),
                "in_verdict_first": sum(bool(r["verdict"]) and r["verdict"][0] == r["effect"] for r in withe),
-               "gap_closures": [r["gap_closure"] for r in withe], "centre_leak": args.centre_leak, "rows": rows}
+               "gap_closures": [r["gap_closure"] for r in withe], "centre_leak": args.centre_leak,
+               "protocol": args.protocol, "rows": rows}
     if args.out:
         Path(args.out).write_text(json.dumps(summary, indent=1))
     print(json.dumps({k: v for k, v in summary.items() if k != "rows"}))

@@ -521,6 +521,10 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
         rep = json.loads(urllib.request.urlopen(f"{base}/api/runs/{json.loads(r.read())[0]['id']}",
                                                 timeout=10).read())["result"]
     assert rep["alternatives"] == [] or rep["verdict"]["effects"] == ["sensor_bias"], rep["verdict"]
+    # a closed hold never moves the handle at speed: inertia is said to be not ruled out, not absent
+    assert "inertia" in rep["verdict"]["untested"], rep["experiments"]["unshown"]
+    expect(page.locator("#detail")).to_contain_text("Not ruled out, since no held-out log shows them: ")
+    expect(page.locator("#detail")).to_contain_text("inertia (needs fast motion: run friction_sweep or sine_sweep)")
     if not rep["verdict"]["effects"]:  # which "no significant effect" it is: nothing above the noise, or a gap
         above = rep["baseline"]["gap"]["above_noise"]
         expect(page.locator("#detail")).to_contain_text(

@@ -58,6 +58,12 @@ def test_the_protocol_through_the_engine_writes_station_logs_that_find_a_withhel
     r = diagnose_dir(tmp_path)
     assert r["verdict"]["effects"] == ["external_leakage"]
     assert r["experiments"]["held_out"] == ["fill_shut-2", "hold_closed-2"]
+    # the handle gives way as the pressures part, but no log here moves it at speed: inertia is named
+    # as not ruled out, not as absent
+    assert r["verdict"]["untested"] == ["inertia"], r["experiments"]["unshown"]
+    assert r["verdict"]["summary"].endswith("so not ruled out: inertia")
+    why = next(c for c in r["ranking"] if c["effect"] == "inertia")["not_significant_because"]
+    assert why[-1].startswith("no log has what shows it best (fast motion)"), why
 
 
 class _LateClock(SimClock):

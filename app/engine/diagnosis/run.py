@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -16,9 +16,12 @@ from app.engine.diagnosis.logs import Experiment, LogFormatError, read_chamber_l
 from app.engine.diagnosis.protocol import effect_experiments
 from app.engine.diagnosis.rotary import RotaryFamily
 
-PROTOCOL: dict[str, list[str]] = effect_experiments() | {
+VISIBLE_IN: dict[str, list[str]] = effect_experiments()
+"""Effect → the rotary protocol's experiments that make it visible (inverse of
+:data:`~app.engine.diagnosis.protocol.VISIBLE`)."""
+PROTOCOL: dict[str, list[str]] = VISIBLE_IN | {
     # outside the rotary protocol: the refdata adapters' own experiments
-    "external_leakage": [*effect_experiments()["external_leakage"], "closed-chamber decay"],
+    "external_leakage": [*VISIBLE_IN["external_leakage"], "closed-chamber decay"],
 }
 """Diagnosis protocol: effect → the experiments that make it visible (the table of
 :data:`~app.engine.diagnosis.protocol.VISIBLE`; used to name the experiment that
@@ -114,7 +117,18 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     report["baseline"]["bounds"] = {p.name: [p.lo, p.hi] for p in family.baseline()}
     report["experiments"]["split"] = why
     # what each log gave the fit to learn from (the regimes the split weighs)
-    report["experiments"]["excites"] = {e.name: sorted(excites(e)) for e in exps}
+    sig = {id(e): excites(e) for e in exps}
+    report["experiments"]["excites"] = {e.name: sorted(sig[id(e)]) for e in exps}
+    unseen = unshown(set().union(*(sig[id(e)] for e in calib)), set().union(*(sig[id(e)] for e in held)))
+    report["experiments"]["unshown"] = unseen
+    for c in report["ranking"]:
+        u = unseen.get(c["effect"])
+        if u is not None and not c["significant"]:
+            c["not_significant_because"] = [*c["not_significant_because"], u["why"]]
+    report["verdict"]["untested"] = [e for e in unseen if e not in report["verdict"]["effects"]]
+    if report["verdict"]["untested"]:
+        report["verdict"]["summary"] += (f"; not shown by the held-out logs, so not ruled out: "
+                                         f"{', '.join(report['verdict']['untested'])}")
     return report | {"adapter": "station"}
 
 
@@ -144,6 +158,8 @@ def _split_station(exps: list[Experiment],
 
 MOVING_RAD_S = 0.1
 """Speed above which a sample counts as motion for :func:`excites` [rad/s]."""
+DCV_OPEN_V = 4.5
+"""A DCV command this far from 5 V [V] or further counts as fully open for :func:`excites`."""
 
 
 def excites(e: Experiment) -> frozenset[str]:
@@ -187,12 +203,69 @@ def excites(e: Experiment) -> frozenset[str]:
         out.add("prv steps")
     if (np.abs(np.diff(np.column_stack([ua, ub]), axis=0)) > rotary.DCV_STEP_V).any():
         out.add("dcv steps")
+    # the flow at a partial opening is the valve model's shape, not only its capacity
+    off = np.abs(np.column_stack([ua, ub]) - 5.0)
+    if np.mean(((off > rotary.DCV_STEP_V) & (off < DCV_OPEN_V)).any(axis=1)) >= 0.05:
+        out.add("dcv partly open")
     pmax = np.maximum(e.channels["p_a"], e.channels["p_b"])
     for name, share in (("pressure ≤ 3 bar", np.mean(pmax <= rotary.LEVEL_BAR)),
                         ("pressure > 3 bar", np.mean(pmax > rotary.LEVEL_BAR))):
         if share >= 0.1:
             out.add(name)
     return frozenset(out)
+
+
+class Shows(NamedTuple):
+    """What shows an effect best: any one of ``regimes`` (of :func:`excites`; none: every log), which the
+    rotary protocol's ``experiments`` have."""
+
+    regimes: tuple[str, ...]
+    experiments: tuple[str, ...]
+
+
+SHOWN_BY: dict[str, Shows] = {
+    "inertia": Shows(("fast motion",), ("friction_sweep", "sine_sweep")),
+    "presliding_friction": Shows(("motion",), ("friction_sweep", "sine_sweep")),
+    "vane_leakage": Shows(("shut",), ("hold_closed", "fill_shut")),
+    "external_leakage": Shows(("shut",), ("hold_closed", "fill_shut")),
+    "heat_transfer": Shows(("shut after a fast fill or vent",), ("fill_shut",)),
+    "tube_dynamics": Shows(("prv steps", "dcv steps"), ("prv_steps", "dcv_steps")),
+    "valve_dynamics": Shows(("prv steps", "dcv steps"), ("prv_steps", "dcv_steps")),
+    "supply_droop": Shows(("prv steps", "dcv steps"), ("prv_steps", "dcv_steps")),
+    "sensor_bias": Shows((), ()),
+}
+"""Effect → what shows it best: the protocol table (:data:`~app.engine.diagnosis.protocol.VISIBLE`) read
+as regimes, so that logs from another protocol are weighed too."""
+
+
+def unshown(fitted: set[str], scored: set[str]) -> dict[str, dict[str, Any]]:
+    """The candidates the held-out logs lack the regimes to show.
+
+    A candidate scored on held-out logs with none of its regimes
+    (:data:`SHOWN_BY`) can come out "not significant" although the rig has
+    it: a leak is clearest in a shut chamber, heat exchange after a fast
+    fill or vent. The report says so beside its verdict, with the protocol
+    experiments that would show it.
+
+    Args:
+        fitted: The regimes the calibration logs excite (:func:`excites`).
+        scored: The regimes the held-out logs excite.
+
+    Returns:
+        Per such effect: ``needs`` (its regimes), ``fitted`` (whether a
+        calibration log has one), ``experiments`` (the protocol's that have
+        them) and ``why`` (one sentence).
+    """
+    out: dict[str, dict[str, Any]] = {}
+    for effect, (needs, exps) in SHOWN_BY.items():
+        if not needs or scored.intersection(needs):
+            continue
+        fit = bool(fitted.intersection(needs))
+        out[effect] = {"needs": list(needs), "fitted": fit, "experiments": list(exps),
+                       "why": f"{'no held-out log' if fit else 'no log'} has what shows it best "
+                              f"({' or '.join(needs)}), so these logs cannot rule it out; the protocol's "
+                              f"{' or '.join(exps)} would"}
+    return out
 
 
 def split_by_coverage(exps: list[Experiment]) -> tuple[list[Experiment], list[Experiment], str]:
