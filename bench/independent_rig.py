@@ -26,7 +26,12 @@ wall heat exchange with an energy balance per chamber (``heat_transfer``),
 pressure- and torque-sensor offsets (``sensor_bias``), a heavier handle
 (``inertia``), an orifice across the vane (``vane_leakage``), a supply that
 sags with the flow drawn (``supply_droop``) and first-order lags on the
-valve commands (``valve_dynamics``); not tubes nor pre-sliding friction.
+valve commands (``valve_dynamics``); since the twenty-ninth session also
+a tube between each DCV port and its chamber, in lumps joined by
+compressible Hagen–Poiseuille segments (``tube_dynamics``; ours: one
+volume behind a laminar resistance), and a reset-integrator bristle that
+holds elastically up to breakaway before the Stribeck curve slides
+(``presliding_friction``; ours: LuGre).
 The open-loop protocol experiments (all but the isotonic workout, whose
 Default controller is ours) are run on it, written as station logs and
 diagnosed by ``cwrr diagnose``'s own path; ``--protocol other`` runs
@@ -65,6 +70,8 @@ A_V_R = 8.55e-4 * 0.023  # vane area × torque radius [m³/rad] (SPEC §1)
 THETA_MAX = math.radians(135.0)  # half of the 270° ROM [rad]
 # Table 4.2 at 3 bar abs (SPEC §2): T_s, T_c [N·m], ω_s [rad/s], B [N·m·s/rad], CCW then CW
 FRICTION = np.array([1.296, 0.627, 0.924, 0.150, 1.316, 0.703, 1.000, 0.123])
+MU = 1.81e-5  # air's dynamic viscosity at 20 °C [Pa·s]
+TUBE_NODES = 2  # lumps of a tube between a DCV port and its chamber (3 are unstable at 8 bar in 2 m at H)
 
 
 def lpm_per_bar(c: float) -> float:
@@ -91,6 +98,15 @@ def _iso(p_u: float, p_d: float, c: float, b: float) -> float:
 
 
 @njit(cache=True)
+def _tube_flow(p1: float, p2: float, conductance: float) -> float:
+    """Isothermal laminar (Hagen–Poiseuille) mass flow along a tube segment from p1 to p2 [kg/s].
+
+    ``conductance`` = π·d⁴ / (256·μ·L·R·T) [kg/(s·Pa²)]: compressible, the flow goes with p1² − p2².
+    """
+    return conductance * (p1 * p1 - p2 * p2)
+
+
+@njit(cache=True)
 def _volumes(th: float, k: np.ndarray) -> tuple[float, float]:
     """Chamber volumes [m³] at vane angle ``th`` [rad]."""
     return k[0] + A_V_R * (th + THETA_MAX), k[1] + A_V_R * (THETA_MAX - th)
@@ -111,7 +127,8 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
     [m³/(s·Pa), -], 7 supply [Pa], 8 inertia [kg·m²], 9 leak C [m³/(s·Pa)], 10 h·A [W/K] (0: isothermal),
     11 p_a sensor offset [bar], 12 p_b sensor offset [bar], 13 the DCV's opening at 5 V [-], 14 torque sensor
     offset [N·m], 15 vane leak C [m³/(s·Pa)], 16 supply droop [Pa/(kg/s)], 17 its time constant [s], 18 DCV
-    and 19 PRV command lags [s] (0: none).
+    and 19 PRV command lags [s] (0: none), 20 bristle stiffness [N·m/rad] and 21 damping [N·m·s/rad] (0:
+    Karnopp's stick), 22 tube length [m] and 23 its inner diameter [m] (0: the port on the chamber).
     """
     n = cmds.shape[0]
     sub = int(round(1.0 / (RATE_HZ * H)))
@@ -126,6 +143,11 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
     uf = cmds[0, 2:4].copy()
     th = 0.0
     w = 0.0
+    zb = 0.0  # bristle deflection [rad]
+    # the tube: TUBE_NODES lumps per side, each a volume at the line's temperature and a laminar segment
+    v_node = math.pi * k[23] ** 2 / 4.0 * k[22] / TUBE_NODES
+    g_seg = math.pi * k[23] ** 4 / (256.0 * MU * (k[22] / TUBE_NODES + 1e-12) * R * T_ATM)
+    pt = np.full((2, TUBE_NODES), pw)
     w_est = 0.0
     th_prev = 0.0
     a_f = 1.0 - math.exp(-2.0 * math.pi * 25.0 / RATE_HZ)  # the station's 25 Hz speed filter
@@ -172,10 +194,21 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
                 d = (5.0 - uf[s]) if s == 0 else (uf[s] - 5.0)
                 a_fill = k[13] + (1.0 - k[13]) * min(max((d - 0.2) / 4.8, 0.0), 1.0)
                 a_exh = k[13] + (1.0 - k[13]) * min(max((-d - 0.2) / 4.8, 0.0), 1.0)
-                q_in = _iso(po[s], pc[s], k[5] * a_fill, k[6])
-                q_out = _iso(pc[s], P_ATM, k[5] * a_exh, k[6])
+                # the valve's port sees the tube's first lump, or the chamber itself without a tube
+                pport = pt[s, 0] if k[22] > 0.0 else pc[s]
+                q_in = _iso(po[s], pport, k[5] * a_fill, k[6])
+                q_out = _iso(pport, P_ATM, k[5] * a_exh, k[6])
                 q_leak = _iso(pc[s], P_ATM, k[9], 0.5) if k[9] > 0.0 else 0.0
                 po[s] += (q_prv - q_in) * R * T_ATM / k[2] * H
+                if k[22] > 0.0:
+                    # along the tube, lump by lump; what reaches the chamber is the last segment's flow
+                    q_seg = np.empty(TUBE_NODES)
+                    for j in range(TUBE_NODES):
+                        q_seg[j] = _tube_flow(pt[s, j], pt[s, j + 1] if j + 1 < TUBE_NODES else pc[s], g_seg)
+                    for j in range(TUBE_NODES):
+                        q_node = (q_in - q_out if j == 0 else q_seg[j - 1]) - q_seg[j]
+                        pt[s, j] += q_node * R * T_ATM / v_node * H
+                    q_in, q_out = max(q_seg[TUBE_NODES - 1], 0.0), max(-q_seg[TUBE_NODES - 1], 0.0)
                 dm = q_in - q_out - q_leak + (-q_vl if s == 0 else q_vl)
                 if k[10] > 0.0:
                     # energy balance: inflow brings the line's temperature, outflow takes the chamber's
@@ -193,6 +226,27 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
             # mechanics: Karnopp stick-slip with the Stribeck curve, end stops
             tp = (pc[0] - pc[1]) * A_V_R
             drive = tp + _user(t, th, w, prog_t, prog_pos)
+            if k[20] > 0.0:
+                # pre-sliding: a reset-integrator bristle (Haessig & Friedland) in place of Karnopp's
+                # stick; it holds elastically up to the breakaway torque, then the Stribeck curve slides
+                z_hi, z_lo = FRICTION[0] / k[20], -FRICTION[4] / k[20]
+                sliding = (zb >= z_hi and w > 0.0) or (zb <= z_lo and w < 0.0)
+                j = 0 if w >= 0.0 else 4
+                if sliding:
+                    sgn = 1.0 if w > 0.0 else -1.0
+                    tf = sgn * (FRICTION[j + 1] + (FRICTION[j] - FRICTION[j + 1])
+                                * math.exp(-(w / FRICTION[j + 2]) ** 2)) + FRICTION[j + 3] * w
+                else:
+                    tf = k[20] * zb + k[21] * w + FRICTION[j + 3] * w
+                    zb = min(max(zb + w * H, z_lo), z_hi)
+                w += (drive - tf) / k[8] * H
+                th += w * H
+                if th > THETA_MAX:
+                    th, w = THETA_MAX, min(w, 0.0)
+                elif th < -THETA_MAX:
+                    th, w = -THETA_MAX, max(w, 0.0)
+                t += H
+                continue
             if abs(w) < 1e-3:
                 ts = FRICTION[0] if drive > 0.0 else FRICTION[4]
                 if abs(drive) <= ts:
@@ -223,6 +277,8 @@ EFFECTS: dict[str, tuple[dict[int, float], dict[int, float]]] = {
     "vane_leakage": ({15: lpm_per_bar(0.02)}, {15: lpm_per_bar(0.06)}),
     "supply_droop": ({16: 0.3 * BAR / 1e-3, 17: 0.05}, {16: 1.0 * BAR / 1e-3, 17: 0.1}),
     "valve_dynamics": ({18: 0.01, 19: 0.03}, {18: 0.03, 19: 0.1}),
+    "tube_dynamics": ({22: 2.0, 23: 0.004}, {22: 5.0, 23: 0.004}),
+    "presliding_friction": ({20: 150.0, 21: 0.5}, {20: 50.0, 21: 0.5}),
 }
 
 
@@ -243,7 +299,8 @@ def rig_constants(seed: int, effect: str, centre_leak: float = 0.005, magnitude:
 
     dv = err()
     k = np.array([3e-6 * dv, 3e-6 * dv, 8e-6, lpm_per_bar(4.0 * err()), 0.3, lpm_per_bar(3.1 * err()), 0.26,
-                  8.0 * BAR, 0.0025, 0.0, 0.0, 0.0, 0.0, centre_leak, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
+                  8.0 * BAR, 0.0025, 0.0, 0.0, 0.0, 0.0, centre_leak, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0,
+                  0.0, 0.004])
     for i, v in EFFECTS[effect][magnitude - 1].items():
         k[i] = v
     return k

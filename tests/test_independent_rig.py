@@ -51,3 +51,34 @@ def test_another_labs_protocol_is_split_with_the_valves_partial_openings_fitted(
     assert "valve_chirp" in {e.name for e in calib} and "run once each" in why
     scored = set().union(*(sig[e.name] for e in held))
     assert {"external_leakage", "heat_transfer"} <= set(unshown(set().union(*sig.values()), scored))
+
+
+def _run(effect: str, mag: int, cmd: tuple[float, float, float, float], step_at_s: float, step_to: float,
+         angle: tuple[float, float], dur_s: float = 2.0) -> np.ndarray:
+    """One experiment on the independent rig: PRV-a stepped to ``step_to`` at ``step_at_s``, the user's
+    program ramping from ``angle[0]`` to ``angle[1]`` over the first second and holding; the log's rows."""
+    from bench import independent_rig as ir
+
+    n = int(dur_s * ir.RATE_HZ)
+    cmds = np.tile(np.array(cmd, dtype=float), (n, 1))
+    cmds[int(step_at_s * ir.RATE_HZ):, 0] = step_to
+    out = np.empty((n, 11))
+    ir._simulate(cmds, np.array([0.0, 1.0, dur_s]), np.array([angle[0], angle[1], angle[1]]),
+                 ir.rig_constants(0, effect, 0.0, mag), np.zeros((n, 4)), 3.0 * ir.BAR, out)
+    return out
+
+
+@pytest.mark.slow
+def test_the_independent_rigs_tube_delays_the_chamber_and_its_bristle_yields_before_breakaway() -> None:
+    """Its two effects written since the twenty-ninth session do what they stand for: 5 m of 4 mm tube
+    slow the chamber's answer to a PRV step without changing where it settles, and with the bristle
+    the handle yields elastically to a push below breakaway that Karnopp's stick holds exactly."""
+    fill = (2.0, 2.0, 0.0, 10.0)  # both DCVs open to their PRVs
+    bare, tube = (_run(e, 2, fill, 0.5, 3.5, (0.0, 0.0))[:, 5] for e in ("none", "tube_dynamics"))
+    k = round(0.51 * 200)  # 10 ms after the step: the bare chamber is most of the way (3.00 → 4.35 of 4.49 bar abs)
+    assert bare[k] - tube[k] > 0.3, (bare[k], tube[k])
+    assert abs(bare[-1] - tube[-1]) < 0.02
+    shut = (2.0, 2.0, 5.0, 5.0)  # equal pressures: no pneumatic torque; the user pushes 20·0.05 = 1 N·m < T_s
+    held, yields = (_run(e, 2, shut, 9.0, 2.0, (0.0, 0.05))[:, 8] for e in ("none", "presliding_friction"))
+    assert np.all(held == 0.0)
+    assert yields[-1] == pytest.approx(1.0 / (50.0 + 20.0), abs=0.003)  # σ0 = 50 N·m/rad against the user's 20
