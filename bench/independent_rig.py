@@ -120,8 +120,8 @@ def _user(t: float, th: float, w: float, prog_t: np.ndarray, prog_pos: np.ndarra
 
 @njit(cache=True)
 def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.ndarray, noise: np.ndarray,
-              pw: float, out: np.ndarray) -> None:
-    """Run one experiment; ``out`` (n, 11) gets the log rows.
+              pw: float, out: np.ndarray, rate: float = RATE_HZ) -> None:
+    """Run one experiment sampled at ``rate`` [Hz]; ``out`` (n, 11) gets the log rows.
 
     k: 0 dead volume a, 1 dead volume b [m³], 2 line volume [m³], 3 PRV C, 4 PRV b, 5 DCV C, 6 DCV b
     [m³/(s·Pa), -], 7 supply [Pa], 8 inertia [kg·m²], 9 leak C [m³/(s·Pa)], 10 h·A [W/K] (0: isothermal),
@@ -131,7 +131,7 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
     Karnopp's stick), 22 tube length [m] and 23 its inner diameter [m] (0: the port on the chamber).
     """
     n = cmds.shape[0]
-    sub = int(round(1.0 / (RATE_HZ * H)))
+    sub = int(round(1.0 / (rate * H)))
     # state: line pressures, chamber masses and temperatures, spools, angle, speed
     po = np.array([pw, pw])
     tc = np.array([T_ATM, T_ATM])
@@ -150,7 +150,7 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
     pt = np.full((2, TUBE_NODES), pw)
     w_est = 0.0
     th_prev = 0.0
-    a_f = 1.0 - math.exp(-2.0 * math.pi * 25.0 / RATE_HZ)  # the station's 25 Hz speed filter
+    a_f = 1.0 - math.exp(-2.0 * math.pi * 25.0 / rate)  # the station's 25 Hz speed filter
     q = 10.0 / 65536.0 * 2.0  # 16-bit over ±10 V, 5 V for 10 bar: bar per count
     t = 0.0
     for i in range(n):
@@ -161,7 +161,7 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
         ti = _user(t, th, w, prog_t, prog_pos)
         th_q = round(th / (2.0 * math.pi / 4096.0)) * (2.0 * math.pi / 4096.0)
         if i > 0:
-            w_est += a_f * ((th_q - th_prev) * RATE_HZ - w_est)
+            w_est += a_f * ((th_q - th_prev) * rate - w_est)
         th_prev = th_q
         out[i, 0] = t
         out[i, 1:5] = cmds[i]
@@ -264,7 +264,7 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
             elif th < -THETA_MAX:
                 th, w = -THETA_MAX, max(w, 0.0)
             t += H
-        t = (i + 1) / RATE_HZ
+        t = (i + 1) / rate
 
 
 EFFECTS: dict[str, tuple[dict[int, float], dict[int, float]]] = {
@@ -326,8 +326,9 @@ def run_rig(outdir: Path, seed: int, effect: str, scale: float, centre_leak: flo
             write_log(outdir, f"{s.name}-{rep + 1}", log, meta)
 
 
-def other_protocol(rng: np.random.Generator) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
-    """Experiments of a protocol other than ours, each run once at 200 Hz: (name, commands, program t, angle).
+def other_protocol(rng: np.random.Generator,
+                   rate: float = RATE_HZ) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+    """Experiments of a protocol other than ours, each run once at ``rate`` [Hz]: (name, commands, program t, angle).
 
     Written for this bench, not from :mod:`app.engine.diagnosis.protocol`, as
     another lab might excite its rig: a PRV staircase on both chambers, a
@@ -339,7 +340,7 @@ def other_protocol(rng: np.random.Generator) -> list[tuple[str, np.ndarray, np.n
     out = []
 
     def add(name: str, dur: float, cmd: Any, angle: Any) -> None:
-        t = np.arange(int(round(dur * RATE_HZ))) / RATE_HZ
+        t = np.arange(int(round(dur * rate))) / rate
         pt = np.linspace(0.0, dur, 400)
         out.append((name, np.array([cmd(x) for x in t], dtype=float), pt, np.array([angle(x) for x in pt])))
 
@@ -360,15 +361,16 @@ def other_protocol(rng: np.random.Generator) -> list[tuple[str, np.ndarray, np.n
     return out
 
 
-def run_rig_other(outdir: Path, seed: int, effect: str, magnitude: int = 1, centre_leak: float = 0.0) -> None:
-    """Write :func:`other_protocol`'s logs (each once) of one rig to ``outdir``."""
+def run_rig_other(outdir: Path, seed: int, effect: str, magnitude: int = 1, centre_leak: float = 0.0,
+                  rate: float = RATE_HZ) -> None:
+    """Write :func:`other_protocol`'s logs (each once, sampled at ``rate`` [Hz]) of one rig to ``outdir``."""
     k = rig_constants(seed, effect, centre_leak, magnitude)
-    for j, (name, cmds, prog_t, prog_pos) in enumerate(other_protocol(np.random.default_rng(7))):
+    for j, (name, cmds, prog_t, prog_pos) in enumerate(other_protocol(np.random.default_rng(7), rate)):
         n = cmds.shape[0]
         noise = np.random.default_rng(seed * 1000 + j).standard_normal((n, 4))
         log = np.empty((n, 11))
-        _simulate(cmds, prog_t, prog_pos, k, noise, 3.0 * BAR, log)
-        meta = {"rig": "rotary", "sample_rate_hz": RATE_HZ, "p_atm_bar": P_ATM / BAR, "working_pressure_bar": 3.0,
+        _simulate(cmds, prog_t, prog_pos, k, noise, 3.0 * BAR, log, rate)
+        meta = {"rig": "rotary", "sample_rate_hz": rate, "p_atm_bar": P_ATM / BAR, "working_pressure_bar": 3.0,
                 "experiment": name, "human": True, "generator": "bench/independent_rig.py --protocol other"}
         write_log(outdir, name, log, meta)
 
@@ -383,8 +385,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--magnitudes", type=int, nargs="*", default=[1, 2], choices=[1, 2])
     ap.add_argument("--protocol", choices=["ours", "other"], default="ours",
                     help="our protocol's open-loop experiments run twice, or other_protocol()'s run once each")
+    ap.add_argument("--rate", type=float, default=RATE_HZ,
+                    help="--protocol other: the logs' sample rate [Hz] (a divisor of the rig's 100 kHz step)")
     ap.add_argument("--out", default=None, help="also write the JSON here")
     args = ap.parse_args(argv)
+    steps = 1.0 / (args.rate * H) if args.rate > 0.0 else 0.0
+    if steps < 1.0 or abs(steps - round(steps)) > 1e-9:
+        ap.error(f"--rate {args.rate:g}: must divide the rig's {1.0 / H:g} Hz step (e.g. 100, 200, 500, 1000)")
     cases = [("none", s, 1) for s in range(args.seeds)] + [(e, args.effect_seed, m) for m in args.magnitudes
                                                                  for e in args.effects]
     rows = []
@@ -392,7 +399,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         with tempfile.TemporaryDirectory() as d:
             t0 = time.perf_counter()
             if args.protocol == "other":
-                run_rig_other(Path(d), seed, effect, mag, args.centre_leak)
+                run_rig_other(Path(d), seed, effect, mag, args.centre_leak, args.rate)
             else:
                 run_rig(Path(d), seed, effect, args.scale, args.centre_leak, mag)
             t1 = time.perf_counter()
@@ -421,7 +428,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                "ranked_first": sum(r["rank"] == 1 for r in withe), "effect_cases": len(withe),
                "in_verdict_first": sum(bool(r["verdict"]) and r["verdict"][0] == r["effect"] for r in withe),
                "gap_closures": [r["gap_closure"] for r in withe], "centre_leak": args.centre_leak,
-               "protocol": args.protocol, "rows": rows}
+               "protocol": args.protocol, "rate_hz": args.rate if args.protocol == "other" else RATE_HZ,
+               "rows": rows}
     if args.out:
         Path(args.out).write_text(json.dumps(summary, indent=1))
     print(json.dumps({k: v for k, v in summary.items() if k != "rows"}))

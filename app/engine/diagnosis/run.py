@@ -16,12 +16,9 @@ from app.engine.diagnosis.logs import Experiment, LogFormatError, read_chamber_l
 from app.engine.diagnosis.protocol import effect_experiments
 from app.engine.diagnosis.rotary import RotaryFamily
 
-VISIBLE_IN: dict[str, list[str]] = effect_experiments()
-"""Effect → the rotary protocol's experiments that make it visible (inverse of
-:data:`~app.engine.diagnosis.protocol.VISIBLE`)."""
-PROTOCOL: dict[str, list[str]] = VISIBLE_IN | {
+PROTOCOL: dict[str, list[str]] = effect_experiments() | {
     # outside the rotary protocol: the refdata adapters' own experiments
-    "external_leakage": [*VISIBLE_IN["external_leakage"], "closed-chamber decay"],
+    "external_leakage": [*effect_experiments()["external_leakage"], "closed-chamber decay"],
 }
 """Diagnosis protocol: effect → the experiments that make it visible (the table of
 :data:`~app.engine.diagnosis.protocol.VISIBLE`; used to name the experiment that
@@ -119,13 +116,13 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     # what each log gave the fit to learn from (the regimes the split weighs)
     sig = {id(e): excites(e) for e in exps}
     report["experiments"]["excites"] = {e.name: sorted(sig[id(e)]) for e in exps}
-    unseen = unshown(set().union(*(sig[id(e)] for e in calib)), set().union(*(sig[id(e)] for e in held)))
-    report["experiments"]["unshown"] = unseen
+    hidden = unshown(set().union(*(sig[id(e)] for e in calib)), set().union(*(sig[id(e)] for e in held)))
+    report["experiments"]["unshown"] = hidden
     for c in report["ranking"]:
-        u = unseen.get(c["effect"])
+        u = hidden.get(c["effect"])
         if u is not None and not c["significant"]:
             c["not_significant_because"] = [*c["not_significant_because"], u["why"]]
-    report["verdict"]["untested"] = [e for e in unseen if e not in report["verdict"]["effects"]]
+    report["verdict"]["untested"] = [e for e in hidden if e not in report["verdict"]["effects"]]
     if report["verdict"]["untested"]:
         report["verdict"]["summary"] += (f"; not shown by the held-out logs, so not ruled out: "
                                          f"{', '.join(report['verdict']['untested'])}")
@@ -171,8 +168,10 @@ def excites(e: Experiment) -> frozenset[str]:
     shut of ≥ 2 s after a chamber's pressure moved ≥ 1 bar in 1 s: heat
     exchange), ``prv steps`` and
     ``dcv steps`` (pressure transients: valve and line dynamics, supply
-    droop), ``pressure ≤ 3 bar`` / ``> 3 bar`` (the level regimes of the
-    report's "where"). The command-step sizes, the 1 rad/s band and the 3 bar
+    droop), ``dcv partly open`` (a DCV command more than ``DCV_STEP_V``
+    from 5 V but short of full opening, :data:`DCV_OPEN_V`, for a twentieth
+    of the log: the valve's curve, not only its capacity), ``pressure ≤ 3
+    bar`` / ``> 3 bar`` (the level regimes of the report's "where"). The command-step sizes, the 1 rad/s band and the 3 bar
     level are the replay's regimes' own (``rotary.PRV_STEP_V``, ``DCV_STEP_V``,
     ``FAST_RAD_S``, ``LEVEL_BAR``); the shares of the log and the shut's
     thresholds are this rule's.
