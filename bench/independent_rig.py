@@ -120,8 +120,11 @@ def _user(t: float, th: float, w: float, prog_t: np.ndarray, prog_pos: np.ndarra
 
 @njit(cache=True)
 def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.ndarray, noise: np.ndarray,
-              pw: float, out: np.ndarray, rate: float = RATE_HZ) -> None:
+              pw: float, out: np.ndarray, rate: float = RATE_HZ, user: bool = True) -> None:
     """Run one experiment sampled at ``rate`` [Hz]; ``out`` (n, 11) gets the log rows.
+
+    ``user``: someone holds the handle and follows the program; without, the handle is free (the
+    torque sensor reads its noise and offset only) and the vane goes where the pressures push it.
 
     k: 0 dead volume a, 1 dead volume b [m³], 2 line volume [m³], 3 PRV C, 4 PRV b, 5 DCV C, 6 DCV b
     [m³/(s·Pa), -], 7 supply [Pa], 8 inertia [kg·m²], 9 leak C [m³/(s·Pa)], 10 h·A [W/K] (0: isothermal),
@@ -158,7 +161,7 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
         vol = _volumes(th, k)
         pa = m[0] * R * tc[0] / vol[0]
         pb = m[1] * R * tc[1] / vol[1]
-        ti = _user(t, th, w, prog_t, prog_pos)
+        ti = _user(t, th, w, prog_t, prog_pos) if user else 0.0
         th_q = round(th / (2.0 * math.pi / 4096.0)) * (2.0 * math.pi / 4096.0)
         if i > 0:
             w_est += a_f * ((th_q - th_prev) * rate - w_est)
@@ -225,7 +228,7 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
                 ps += ((k[7] - k[16] * q_sup) - ps) * H / k[17]
             # mechanics: Karnopp stick-slip with the Stribeck curve, end stops
             tp = (pc[0] - pc[1]) * A_V_R
-            drive = tp + _user(t, th, w, prog_t, prog_pos)
+            drive = tp + (_user(t, th, w, prog_t, prog_pos) if user else 0.0)
             if k[20] > 0.0:
                 # pre-sliding: a reset-integrator bristle (Haessig & Friedland) in place of Karnopp's
                 # stick; it holds elastically up to the breakaway torque, then the Stribeck curve slides
@@ -326,23 +329,29 @@ def run_rig(outdir: Path, seed: int, effect: str, scale: float, centre_leak: flo
             write_log(outdir, f"{s.name}-{rep + 1}", log, meta)
 
 
-def other_protocol(rng: np.random.Generator,
-                   rate: float = RATE_HZ) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
-    """Experiments of a protocol other than ours, each run once at ``rate`` [Hz]: (name, commands, program t, angle).
+def other_protocol(rng: np.random.Generator, rate: float = RATE_HZ,
+                   free: bool = False) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, bool]]:
+    """Experiments of a protocol other than ours, each run once at ``rate`` [Hz].
+
+    Returns:
+        Per experiment: name, commands (n, 4) [V], the user's program (times [s], angles [rad]),
+        and whether someone holds the handle.
 
     Written for this bench, not from :mod:`app.engine.diagnosis.protocol`, as
     another lab might excite its rig: a PRV staircase on both chambers, a
     hold with the DCVs shut at equal pressures, a swing the user leads with
     the pressures following it, a chirp on the DCVs through their partial
     openings, random PRV pulses while the user rocks the handle. No log
-    shuts a chamber after a fast fill, none holds the chambers apart.
+    shuts a chamber after a fast fill, none holds the chambers apart. With
+    ``free``, two logs more of PRV steps on a free handle (``human``
+    false), which throw the vane from end stop to end stop.
     """
     out = []
 
-    def add(name: str, dur: float, cmd: Any, angle: Any) -> None:
+    def add(name: str, dur: float, cmd: Any, angle: Any, user: bool = True) -> None:
         t = np.arange(int(round(dur * rate))) / rate
         pt = np.linspace(0.0, dur, 400)
-        out.append((name, np.array([cmd(x) for x in t], dtype=float), pt, np.array([angle(x) for x in pt])))
+        out.append((name, np.array([cmd(x) for x in t], dtype=float), pt, np.array([angle(x) for x in pt]), user))
 
     stair = [0.5, 1.5, 2.5, 3.5, 2.5, 1.5, 2.0]
     add("staircase", 17.5, lambda x: (stair[min(int(x / 2.5), 6)],
@@ -358,20 +367,24 @@ def other_protocol(rng: np.random.Generator,
     levels = rng.uniform(0.5, 3.5, (40, 2))
     add("pulses", 15.0, lambda x: (*levels[np.searchsorted(ends, x)], 0.0, 10.0),
         lambda x: 0.3 * math.sin(0.2 * math.pi * x))
+    if free:
+        for name, lv in (("free_steps_1", [(2.0, 1.0), (1.0, 2.5), (3.0, 1.0), (1.0, 3.0)]),
+                         ("free_steps_2", [(1.0, 2.0), (2.5, 1.0), (1.0, 3.0), (3.0, 1.5)])):
+            add(name, 12.0, lambda x, lv=lv: (*lv[min(int(x / 3.0), 3)], 0.0, 10.0), lambda x: 0.0, user=False)
     return out
 
 
 def run_rig_other(outdir: Path, seed: int, effect: str, magnitude: int = 1, centre_leak: float = 0.0,
-                  rate: float = RATE_HZ) -> None:
+                  rate: float = RATE_HZ, free: bool = False) -> None:
     """Write :func:`other_protocol`'s logs (each once, sampled at ``rate`` [Hz]) of one rig to ``outdir``."""
     k = rig_constants(seed, effect, centre_leak, magnitude)
-    for j, (name, cmds, prog_t, prog_pos) in enumerate(other_protocol(np.random.default_rng(7), rate)):
+    for j, (name, cmds, prog_t, prog_pos, user) in enumerate(other_protocol(np.random.default_rng(7), rate, free)):
         n = cmds.shape[0]
         noise = np.random.default_rng(seed * 1000 + j).standard_normal((n, 4))
         log = np.empty((n, 11))
-        _simulate(cmds, prog_t, prog_pos, k, noise, 3.0 * BAR, log, rate)
+        _simulate(cmds, prog_t, prog_pos, k, noise, 3.0 * BAR, log, rate, user)
         meta = {"rig": "rotary", "sample_rate_hz": rate, "p_atm_bar": P_ATM / BAR, "working_pressure_bar": 3.0,
-                "experiment": name, "human": True, "generator": "bench/independent_rig.py --protocol other"}
+                "experiment": name, "human": user, "generator": "bench/independent_rig.py --protocol other"}
         write_log(outdir, name, log, meta)
 
 
@@ -387,6 +400,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     help="our protocol's open-loop experiments run twice, or other_protocol()'s run once each")
     ap.add_argument("--rate", type=float, default=RATE_HZ,
                     help="--protocol other: the logs' sample rate [Hz] (a divisor of the rig's 100 kHz step)")
+    ap.add_argument("--free-handle", action="store_true",
+                    help="--protocol other: two logs more, PRV steps on a free handle thrown from stop to stop")
     ap.add_argument("--out", default=None, help="also write the JSON here")
     args = ap.parse_args(argv)
     steps = 1.0 / (args.rate * H) if args.rate > 0.0 else 0.0
@@ -399,7 +414,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         with tempfile.TemporaryDirectory() as d:
             t0 = time.perf_counter()
             if args.protocol == "other":
-                run_rig_other(Path(d), seed, effect, mag, args.centre_leak, args.rate)
+                run_rig_other(Path(d), seed, effect, mag, args.centre_leak, args.rate, args.free_handle)
             else:
                 run_rig(Path(d), seed, effect, args.scale, args.centre_leak, mag)
             t1 = time.perf_counter()
@@ -428,8 +443,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                "ranked_first": sum(r["rank"] == 1 for r in withe), "effect_cases": len(withe),
                "in_verdict_first": sum(bool(r["verdict"]) and r["verdict"][0] == r["effect"] for r in withe),
                "gap_closures": [r["gap_closure"] for r in withe], "centre_leak": args.centre_leak,
-               "protocol": args.protocol, "rate_hz": args.rate if args.protocol == "other" else RATE_HZ,
-               "rows": rows}
+               "protocol": args.protocol, "free_handle": args.free_handle,
+               "rate_hz": args.rate if args.protocol == "other" else RATE_HZ, "rows": rows}
     if args.out:
         Path(args.out).write_text(json.dumps(summary, indent=1))
     print(json.dumps({k: v for k, v in summary.items() if k != "rows"}))

@@ -19,7 +19,8 @@ drive them, so a gap shows up in the equation that has it:
   and acceleration by differentiating the filtered angle); the nonlinear
   friction column, computed on a wider-band speed, passes the same filter
   once (parallel filtering, as for the EMPS). The filter's first and last
-  0.1 s are not scored.
+  0.1 s are not scored, nor the torque at an end stop (within 2°, and as far
+  as the filter spreads it): the stop's reaction is no sensor's.
 * **Where a regulator's phase is lost** (channels ``p_a``, ``p_b``): a PRV
   that has to act (the vane moves, the gas cools, a hold) cycles in a
   sawtooth of 0.02–0.05 bar at 8–20 Hz. The replay cycles too, at the right
@@ -69,6 +70,8 @@ from app.engine.physics import plant as pl
 # 200 Hz; 10 ms flagged the samples next to every breakaway as sliding while stiction still held
 # (the true model's torque error over the protocol fell from 0.009 to 0.005 N·m RMS)
 STUCK_WINDOW_S = 0.005
+# the vane is at an end stop within this of it [rad]: 2°, an encoder zero a little off included
+STOP_TOL_RAD = math.radians(2.0)
 EDGE_S = 0.1  # zero-phase filter transients at each end of a log, left out of the torque channel [s]
 # predictions are scored on every k-th sample of a faster log, k = round(rate / this) [Hz]: the
 # station's HIL rate (SPEC: f_s = 200 Hz), at which the significance thresholds were set. ΔBIC
@@ -492,6 +495,13 @@ class RotaryFamily:
         gap = unscored_near_fills(exp.filled, edge)
         if gap is not None:
             tq_f[gap] = np.nan
+        # nor near an end stop: the stop's reaction (at rest on it, and the impact of arriving) is
+        # no sensor's, so the balance cannot tell it from a model error. Free-handle logs slammed
+        # stop to stop had the friction fitted at 2 × and the pressure gains at 1.03 to explain it,
+        # and named pre-sliding on an effect-free rig (E 0.12; 0.028 with the stops unscored)
+        stops = self.at_stops(ch["theta"])
+        if stops.any():
+            tq_f[maximum_filter1d(stops.astype(np.int8), 2 * edge + 1) > 0] = np.nan
         pa_f = filtfilt(b, a, ch["p_a"])
         pb_f = filtfilt(b, a, ch["p_b"])
         cmds = np.ascontiguousarray(np.column_stack([exp.inputs[c] for c in ("z_a", "z_b", "u_a", "u_b")]))
@@ -537,6 +547,11 @@ class RotaryFamily:
                           {k: v[keep] for k, v in inputs.items()}, still, keep, (lost_a, lost_b),
                           exp.filled if exp.filled is not None and exp.filled.any() else None,
                           _noise_carried(b, a, ~still)[keep])
+
+    def at_stops(self, theta: np.ndarray) -> np.ndarray:
+        """Where the vane is at an end stop: the thesis rig's (SPEC: 270° ROM), within :data:`STOP_TOL_RAD`."""
+        g = self.nominal.vane
+        return np.asarray((theta >= g.theta_max - STOP_TOL_RAD) | (theta <= g.theta_min + STOP_TOL_RAD))
 
     def measured(self, prep: RotaryPrep) -> dict[str, np.ndarray]:
         k = prep.keep

@@ -171,8 +171,9 @@ def excites(e: Experiment) -> frozenset[str]:
     droop), ``dcv partly open`` (a DCV command more than ``DCV_STEP_V``
     from 5 V but short of full opening, :data:`DCV_OPEN_V`, for a twentieth
     of the log: the valve's curve, not only its capacity), ``pressure ≤ 3
-    bar`` / ``> 3 bar`` (the level regimes of the report's "where"). The command-step sizes, the 1 rad/s band and the 3 bar
-    level are the replay's regimes' own (``rotary.PRV_STEP_V``, ``DCV_STEP_V``,
+    bar`` / ``> 3 bar`` (the level regimes of the report's "where"). The
+    command-step sizes, the 1 rad/s band and the 3 bar level are the
+    replay's regimes' own (``rotary.PRV_STEP_V``, ``DCV_STEP_V``,
     ``FAST_RAD_S``, ``LEVEL_BAR``); the shares of the log and the shut's
     thresholds are this rule's.
     """
