@@ -107,6 +107,15 @@ def _tube_flow(p1: float, p2: float, conductance: float) -> float:
 
 
 @njit(cache=True)
+def _stribeck(w: float, ccw: bool) -> float:
+    """Sliding friction at speed ``w`` [N·m]: Table 4.2's Stribeck curve at 3 bar, signed by the direction."""
+    j = 0 if ccw else 4
+    sgn = 1.0 if ccw else -1.0
+    return sgn * (FRICTION[j + 1] + (FRICTION[j] - FRICTION[j + 1]) * math.exp(-(w / FRICTION[j + 2]) ** 2)) \
+        + FRICTION[j + 3] * w
+
+
+@njit(cache=True)
 def _volumes(th: float, k: np.ndarray) -> tuple[float, float]:
     """Chamber volumes [m³] at vane angle ``th`` [rad]."""
     return k[0] + A_V_R * (th + THETA_MAX), k[1] + A_V_R * (THETA_MAX - th)
@@ -233,33 +242,19 @@ def _simulate(cmds: np.ndarray, prog_t: np.ndarray, prog_pos: np.ndarray, k: np.
                 # pre-sliding: a reset-integrator bristle (Haessig & Friedland) in place of Karnopp's
                 # stick; it holds elastically up to the breakaway torque, then the Stribeck curve slides
                 z_hi, z_lo = FRICTION[0] / k[20], -FRICTION[4] / k[20]
-                sliding = (zb >= z_hi and w > 0.0) or (zb <= z_lo and w < 0.0)
-                j = 0 if w >= 0.0 else 4
-                if sliding:
-                    sgn = 1.0 if w > 0.0 else -1.0
-                    tf = sgn * (FRICTION[j + 1] + (FRICTION[j] - FRICTION[j + 1])
-                                * math.exp(-(w / FRICTION[j + 2]) ** 2)) + FRICTION[j + 3] * w
+                if (zb >= z_hi and w > 0.0) or (zb <= z_lo and w < 0.0):
+                    tf = _stribeck(w, w > 0.0)
                 else:
-                    tf = k[20] * zb + k[21] * w + FRICTION[j + 3] * w
+                    tf = k[20] * zb + k[21] * w + FRICTION[3 if w >= 0.0 else 7] * w
                     zb = min(max(zb + w * H, z_lo), z_hi)
-                w += (drive - tf) / k[8] * H
-                th += w * H
-                if th > THETA_MAX:
-                    th, w = THETA_MAX, min(w, 0.0)
-                elif th < -THETA_MAX:
-                    th, w = -THETA_MAX, max(w, 0.0)
-                t += H
-                continue
-            if abs(w) < 1e-3:
-                ts = FRICTION[0] if drive > 0.0 else FRICTION[4]
-                if abs(drive) <= ts:
-                    w = 0.0
-                    t += H
-                    continue
-            j = 0 if (w > 0.0 or (w == 0.0 and drive > 0.0)) else 4
-            sgn = 1.0 if j == 0 else -1.0
-            tf = sgn * (FRICTION[j + 1] + (FRICTION[j] - FRICTION[j + 1]) * math.exp(-(w / FRICTION[j + 2]) ** 2)) \
-                + FRICTION[j + 3] * w
+            else:
+                if abs(w) < 1e-3:
+                    ts = FRICTION[0] if drive > 0.0 else FRICTION[4]
+                    if abs(drive) <= ts:
+                        w = 0.0
+                        t += H
+                        continue
+                tf = _stribeck(w, w > 0.0 or (w == 0.0 and drive > 0.0))
             w += (drive - tf) / k[8] * H
             th += w * H
             if th > THETA_MAX:
