@@ -100,7 +100,7 @@ def test_a_valve_held_partly_open_is_a_regime_of_its_own_that_stays_fitted() -> 
     chirp = 5.0 - 2.5 * np.sin(2.0 * np.pi * (0.2 + 0.3 * t) * t)
     assert "dcv partly open" in excites(_log("chirp", t, chirp, np.full(len(t), 2.0)))
     assert "dcv partly open" not in excites(_log("full", t, np.where(t < 2.0, 0.0, 10.0), np.full(len(t), 2.0)))
-    assert "dcv partly open" not in excites(_log("shut", t, 5.1, np.full(len(t), 2.0)))  # within the null band
+    assert "dcv partly open" not in excites(_log("shut", t, 5.1, np.full(len(t), 2.0)))  # within 0.2 V of centre
     logs = [_log(n, t, 10.0, np.full(len(t), 2.0)) for n in ("a", "b")]
     calib, held, _ = split_by_coverage([logs[0], _log("chirp", t, chirp, np.full(len(t), 2.0)), logs[1]])
     assert [e.name for e in held] == ["b"] and "chirp" in [e.name for e in calib]

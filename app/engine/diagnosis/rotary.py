@@ -498,7 +498,8 @@ class RotaryFamily:
         # nor near an end stop: the stop's reaction (at rest on it, and the impact of arriving) is
         # no sensor's, so the balance cannot tell it from a model error. Free-handle logs slammed
         # stop to stop had the friction fitted at 2 × and the pressure gains at 1.03 to explain it,
-        # and named pre-sliding on an effect-free rig (E 0.12; 0.028 with the stops unscored)
+        # and named pre-sliding on an effect-free rig (E 0.12; 0.027 with the stops unscored: seed 0 of
+        # bench/independent_rig.py --free-handle)
         stops = self.at_stops(ch["theta"])
         if stops.any():
             tq_f[maximum_filter1d(stops.astype(np.int8), 2 * edge + 1) > 0] = np.nan
