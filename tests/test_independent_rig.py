@@ -102,3 +102,33 @@ def test_a_free_handle_thrown_to_the_stops_does_not_bend_the_recalibration(tmp_p
     assert abs(fit["gain_a"] - 1.0) < 0.015 and abs(fit["gain_b"] - 1.0) < 0.015, fit
     assert r["how_far"]["e_before"] < 0.04, r["how_far"]
     assert "presliding_friction" not in r["verdict"]["effects"], r["verdict"]
+
+
+@pytest.mark.slow
+def test_logs_whose_torque_cannot_be_scored_anywhere_leave_it_out_and_say_so(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A free handle under a steady pressure difference rests on its end stop from the start: no sample
+    of its torque is scored (the stop takes what the balance leaves). With only such logs, the torque
+    had read NaN into every E and the summary ("E nan against a floor of nan"); now the channel leaves
+    the diagnosis and the report names it."""
+    import json
+
+    from app.cli import main
+    from app.engine.diagnosis.logs import write_log
+    from bench import independent_rig as ir
+
+    k = ir.rig_constants(0, "none", 0.0, 1)
+    for j in (1, 2):
+        n = 1600
+        log = np.empty((n, 11))
+        ir._simulate(np.tile([3.0, 0.5, 0.0, 10.0], (n, 1)), np.array([0.0, 8.0]), np.zeros(2), k,
+                     np.random.default_rng(j).standard_normal((n, 4)), 3.0 * ir.BAR, log, 200.0, False)
+        meta = {"rig": "rotary", "sample_rate_hz": 200.0, "p_atm_bar": ir.P_ATM / ir.BAR,
+                "working_pressure_bar": 3.0, "experiment": "pinned", "human": False}
+        write_log(tmp_path, f"pinned-{j}", log, meta)
+    assert main(["diagnose", str(tmp_path), "--json", str(tmp_path / "r.json")]) == 0
+    r = json.loads((tmp_path / "r.json").read_text())
+    assert r["experiments"]["unscored_channels"] == ["torque"]
+    assert set(r["baseline"]["nrmse"]) == {"p_a", "p_b", "p_s"} and np.isfinite(r["how_far"]["e_before"])
+    assert "nan" not in r["verdict"]["summary"]
+    assert "not scored: torque" in capsys.readouterr().out

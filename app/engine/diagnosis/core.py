@@ -63,6 +63,7 @@ A NaN in a measured channel marks a sample the family does not score.
 
 from __future__ import annotations
 
+import copy
 import itertools
 import math
 import threading
@@ -292,8 +293,10 @@ def channel_spread(family: Family, meas: list[dict[str, np.ndarray]]) -> np.ndar
     """NRMSE normaliser per channel: its SD over ``meas``, or its group's largest (``shared_scale``)."""
     sd = {c: float(np.nanstd(np.concatenate([m[c] for m in meas]))) or 1.0 for c in family.channels}
     for group in getattr(family, "shared_scale", ()):
-        top = max(sd[c] for c in group)
-        sd |= {c: top for c in group}
+        group = tuple(c for c in group if c in sd)
+        if group:
+            top = max(sd[c] for c in group)
+            sd |= {c: top for c in group}
     return np.array([sd[c] for c in family.channels])
 
 
@@ -1047,8 +1050,16 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     calib = [family.prepare(e) for e in calib_exps]
     held = [family.prepare(e) for e in held_exps]
     blocks = blocks or (1 if len(held) >= 4 else 8)
-    scales = channel_scales(family, calib)
     held_meas = [family.measured(p) for p in held]
+    # a channel no held-out sample scores (a torque whose handle rests on an end stop throughout)
+    # has no error to weigh: it leaves the diagnosis, fit and score alike, and the report says so
+    unscored = [c for c in family.channels if not any(np.isfinite(m[c]).any() for m in held_meas)]
+    if len(unscored) == len(family.channels):
+        raise ValueError("no held-out sample of any channel can be scored")
+    if unscored:
+        family = copy.copy(family)
+        family.channels = tuple(c for c in family.channels if c not in unscored)
+    scales = channel_scales(family, calib)
     spread = channel_spread(family, held_meas)
     floor = noise_floor(family, held, held_meas)
     norm = _Norm(spread, floor)
@@ -1142,7 +1153,9 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                                                and (info := sampling_irregularity(np.asarray(e.t))) is not None},
                         # never changes: a quantity that did not, or a sensor reading nothing (bends the fit)
                         "flat_channels": {getattr(e, "name", "?"): flat for e in (*calib_exps, *held_exps)
-                                          if isinstance(e, Experiment) and (flat := flat_channels(e))}},
+                                          if isinstance(e, Experiment) and (flat := flat_channels(e))},
+                        # channels no held-out sample could score: left out of every fit and E
+                        "unscored_channels": unscored},
         "baseline": {"nrmse": dict(zip(chans, map(float, nr_base), strict=True)), "e": e_base,
                      "identifiability": base.identifiability(), "gap": gap},
         "noise_floor": {"nrmse": dict(zip(chans, map(float, floor / spread), strict=True)), "e": e_floor},
