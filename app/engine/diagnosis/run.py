@@ -118,11 +118,14 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     report["experiments"]["excites"] = {e.name: sorted(sig[id(e)]) for e in exps}
     hidden = unshown(set().union(*(sig[id(e)] for e in calib)), set().union(*(sig[id(e)] for e in held)))
     report["experiments"]["unshown"] = hidden
+    untested = []
     for c in report["ranking"]:
         u = hidden.get(c["effect"])
         if u is not None and not c["significant"]:
+            # a candidate the logs showed significant is tested, whatever the verdict made of it
             c["not_significant_because"] = [*c["not_significant_because"], u["why"]]
-    report["verdict"]["untested"] = [e for e in hidden if e not in report["verdict"]["effects"]]
+            untested.append(c["effect"])
+    report["verdict"]["untested"] = [e for e in hidden if e in untested]
     if report["verdict"]["untested"]:
         report["verdict"]["summary"] += (f"; not shown by the held-out logs, so not ruled out: "
                                          f"{', '.join(report['verdict']['untested'])}")
