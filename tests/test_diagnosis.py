@@ -773,3 +773,76 @@ def test_switched_off_reads_each_parameter_on_its_own_scale() -> None:
     assert not core.switched_off([lin, log], {"e.x": 0.0, "e.c": 1.2e-5})  # log(1.2) > 1e-3 · log(5e4)
     assert not core.switched_off([Param("e.y", 1.0, 0.0, 2.0, "-")], {"e.y": 1.0})  # no declared off
     assert not core.switched_off([], {})
+
+
+class _LineOffset(_Line):
+    """y = a·x + c, with the offset c an effect bounded to [0, 0.1]."""
+
+    candidates: tuple[str, ...] = ("sensor_bias",)
+
+    def effect(self, name: str) -> list[Param]:
+        return [Param("sensor_bias.c", 0.01, 0.0, 0.1, "-", off=0.0)]
+
+    def predict(self, p: Experiment, x: dict[str, float], effects: tuple[str, ...]) -> dict[str, np.ndarray]:
+        return {"y": x["a"] * p.inputs["x"] + (x["sensor_bias.c"] if "sensor_bias" in effects else 0.0)}
+
+
+@pytest.mark.parametrize(("offset", "pinned"), [(0.05, False), (0.15, True)])
+def test_an_effect_its_fit_pins_on_its_bounds_is_not_significant(offset: float, pinned: bool) -> None:
+    # within its range the offset is found; past it, the fit pushes it onto its upper bound and
+    # closes two thirds of the gap, but what the data want lies outside the effect's physics
+    rng = np.random.default_rng(3)
+    x = np.linspace(0.0, 1.0, 400)
+
+    def exp(name: str) -> Experiment:
+        return Experiment(name, x, {"x": x}, {"y": x + offset + 0.01 * rng.standard_normal(x.size)}, {})
+
+    r = core.diagnose(_LineOffset(), [exp("a"), exp("b")], [exp("c"), exp("d")], blocks=4)
+    c = r["ranking"][0]
+    assert c["gap_closure"] > 0.5, c
+    assert c["significant"] is not pinned and (r["verdict"]["effects"] == []) is pinned
+    if pinned:
+        assert c["params_at_bound"] == ["sensor_bias.c"]
+        assert "every parameter on a bound of its range (c 0.1 -, its upper)" in c["not_significant_because"][0]
+
+
+class _LineLag(_Line):
+    """y = a·x + c·(1 − exp(−t/τ)): an effect that is a step of height c through a lag τ, whose
+    static part (``static_part``: the lag taken out) is the step alone."""
+
+    candidates: tuple[str, ...] = ("tube_dynamics",)
+
+    def effect(self, name: str) -> list[Param]:
+        return [Param("tube_dynamics.c", 0.1, 0.0, 1.0, "-", off=0.0),
+                Param("tube_dynamics.tau", 0.3, 0.01, 3.0, "s", log=True)]
+
+    def static_part(self, effect: str) -> tuple[dict[str, float], str] | None:
+        return ({"lag_off": 1.0}, "the lag taken out") if effect == "tube_dynamics" else None
+
+    def predict(self, p: Experiment, x: dict[str, float], effects: tuple[str, ...]) -> dict[str, np.ndarray]:
+        y = x["a"] * p.inputs["x"]
+        if "tube_dynamics" in effects:
+            lag = 1.0 if x.get("lag_off") else 1.0 - np.exp(-p.t / x["tube_dynamics.tau"])
+            y = y + x["tube_dynamics.c"] * lag
+        return {"y": y}
+
+
+@pytest.mark.parametrize("tau", [0.0, 0.5])
+def test_a_dynamic_effect_whose_gain_stays_without_its_dynamics_is_credited_to_its_static_part(tau: float) -> None:
+    # a plain offset fits a step through the shortest lag as well as without it: the lag earns
+    # nothing, and what closes the gap is the static part (on the rig: a tube of no volume, a
+    # restriction at the port); a real lag loses most of its gain when it is taken out
+    rng = np.random.default_rng(5)
+    t = np.linspace(0.0, 4.0, 800)
+    step = 0.3 * (1.0 if tau == 0.0 else 1.0 - np.exp(-t / tau))
+
+    def exp(name: str) -> Experiment:
+        return Experiment(name, t, {"x": t / 4.0}, {"y": t / 4.0 + step + 0.01 * rng.standard_normal(t.size)}, {})
+
+    r = core.diagnose(_LineLag(), [exp("a"), exp("b")], [exp("c"), exp("d")], blocks=4)
+    c = r["ranking"][0]
+    assert c["gap_closure"] > 0.8, c
+    assert c["significant"] is (tau > 0.0)
+    if tau == 0.0:
+        assert c["not_significant_because"][-1].startswith("its gain stays with the lag taken out (GC 0.")
+        assert r["verdict"]["effects"] == []

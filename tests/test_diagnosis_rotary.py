@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from app.engine.diagnosis import rotary
-from app.engine.diagnosis.core import _residuals, channel_scales, diagnose, fit, recalibrate
+from app.engine.diagnosis.core import _residuals, channel_scales, diagnose, fit, held_form, recalibrate
 from app.engine.diagnosis.logs import Experiment, LogFormatError, read_logdir
 from app.engine.diagnosis.protocol import PREROLL_S, VISIBLE, effect_experiments, run_protocol
 from app.engine.diagnosis.rotary import RotaryFamily, _phase_lost
@@ -24,8 +24,10 @@ from app.engine.diagnosis.run import (
     split_by_coverage,
     unshown,
 )
-from app.engine.diagnosis.suite import MAGNITUDES, perturbed, perturbed_each, run_case, true_params
+from app.engine.diagnosis.suite import MAGNITUDES, STRUCTURAL, perturbed, perturbed_each, run_case, true_params
 from app.engine.params import EFFECT_NAMES, PlantParams, ValveDynamicsEffect
+from app.engine.physics.flow import null_scale
+from app.engine.physics.plant import area_frac
 
 
 @pytest.fixture(scope="module")
@@ -645,6 +647,76 @@ def test_the_recalibration_grids_again_with_the_gains_and_friction_it_fitted() -
     base = recalibrate(fam, preps, scales)
     from_truth = fit(fam, preps, (), scales=scales, starts=[true_params(rig, None)])
     assert base.rss < 1.1 * from_truth.rss, (base.params, base.rss / from_truth.rss)
+
+
+def test_a_valve_shut_at_its_centre_is_recalibrated_not_left_as_gap() -> None:
+    """An effect-free rig whose DCVs are shut at 5 V and open past a 0.2 V dead band with no null
+    zone (suite.STRUCTURAL's dcv_closed_centre), logged once. With the thesis's centre (underlaps
+    0.7 / 0.3 V, a 1.6 V null zone) held, the replay fills a vented, shut chamber from the line and
+    sags a full one: on such a rig written apart from ours (bench/independent_rig.py) that had left
+    E at 18 × the noise floor. The recalibration takes the valve's centre as it is."""
+    rig = STRUCTURAL["dcv_closed_centre"][1](perturbed(212))
+    calib, _, _ = split_by_coverage(run_protocol(rig, seed=212, repetitions=1))
+    fam = RotaryFamily()
+    preps = [fam.prepare(e) for e in calib]
+    scales = channel_scales(fam, preps)
+    base = recalibrate(fam, preps, scales)
+    truth = true_params(rig, None)
+    assert truth["dcv_centre_closure"] == 1.0 and truth["dcv_dead_band_v"] == pytest.approx(0.2)
+    assert base.params["dcv_centre_closure"] > 0.8, base.params
+    from_truth = fit(fam, preps, (), scales=scales, starts=[truth])
+    assert base.rss < 1.2 * from_truth.rss, (base.params, base.rss / from_truth.rss)
+    # the thesis's centre held (its range narrowed to it): what the recalibration did before
+    thesis = RotaryFamily(bounds={"dcv_centre_closure": (0.0, 1e-6)})
+    held = recalibrate(thesis, [thesis.prepare(e) for e in calib], scales)
+    assert held.rss > 3 * base.rss, (held.rss / base.rss, held.params)
+
+
+def test_the_valves_centre_moves_both_paths_together_and_never_leaks_more_than_the_thesiss() -> None:
+    fam = RotaryFamily()
+    d = fam.nominal.dcv
+    assert fam.dcv_centre(0.0, 0.3) == {"ul_f": d.underlap_fill_v, "ul_e": d.underlap_exh_v, "null_w": d.null_width_v}
+    assert fam.dcv_centre(1.0, 0.3) == pytest.approx({"ul_f": -0.3, "ul_e": -0.3, "null_w": 0.0})
+    # the flow at 5 V falls with the closure on both paths: no form drains a shut chamber faster
+    k0 = fam.kernel
+    for c0, c1 in [(0.0, 0.3), (0.3, 0.7), (0.7, 1.0)]:
+        a, b = fam.dcv_centre(c0, 0.2), fam.dcv_centre(c1, 0.2)
+        for ul in ("ul_f", "ul_e"):
+            s_a = null_scale(5.0, k0.null_s0, a["null_w"]) * area_frac(a[ul], k0.mp)
+            s_b = null_scale(5.0, k0.null_s0, b["null_w"]) * area_frac(b[ul], k0.mp)
+            assert s_b <= s_a, (c0, c1, ul)
+
+
+def test_a_tubes_static_part_is_its_restriction_with_a_hundredth_of_its_volume() -> None:
+    fam = RotaryFamily()
+    part = fam.static_part("tube_dynamics")
+    assert part is not None
+    extra, words = part
+    eff = ("tube_dynamics",)
+    x = {p.name: p.x0 for p in fam.baseline()} | {"tube_dynamics.length": 2.0, "tube_dynamics.diameter": 0.004}
+    k, k_static = fam.kernel_for(x, eff, 8.0), fam.kernel_for(x | extra, eff, 8.0)
+    assert k_static.tube_vol == pytest.approx(0.01 * k.tube_vol) and k_static.tube_g == k.tube_g
+    assert fam._key(x, eff) != fam._key(x | extra, eff)  # not the tube's cached replay
+    assert "restriction" in words and fam.static_part("vane_leakage") is None
+
+
+def test_a_form_the_recalibration_kept_nominal_is_held_in_every_candidates_fit() -> None:
+    fam = RotaryFamily()
+    form = set(rotary._DCV_FORM)
+    nominal = {p.name: p.x0 for p in fam.baseline()}
+    assert set(held_form(fam, nominal)) == form
+    assert held_form(fam, nominal | {"dcv_centre_closure": 0.9}) == []
+    for eff in ("inertia", "presliding_friction", "sensor_bias"):
+        assert form <= fam.frozen((eff,)), eff  # they leave the pneumatic network alone
+    assert form <= fam.frozen(("vane_leakage", "heat_transfer"))  # a greedy round keeps the reference's
+    assert not form & fam.frozen(("vane_leakage",))
+    for eff in ("vane_leakage", "external_leakage", "tube_dynamics", "sensor_bias"):
+        assert form <= fam.rebase((eff,)), eff  # a moved form may stand in for the effect: restarted
+    assert not form & fam.rebase(("inertia",))
+    assert form <= {p.name for p in fam.baseline()} and {p.name for p in fam.form_grid} == form
+    # a bound narrows the form's grid as it does the range
+    narrowed = RotaryFamily(bounds={"dcv_centre_closure": (0.0, 0.5)})
+    assert {p.name: (p.lo, p.hi) for p in narrowed.form_grid}["dcv_centre_closure"] == (0.0, 0.5)
 
 
 @pytest.mark.slow

@@ -385,8 +385,10 @@ class DCVParams:
         model: ``"iso"`` or ``"new"``.
         c: Sonic conductance at full opening [l/(s·bar)] (Table 3.3: 3.1).
         b: Critical pressure ratio [-] (Table 3.3: 0.26).
-        underlap_fill_v: Δu_p2 filling [V] (thesis 4.1.1: 0.7).
-        underlap_exh_v: Δu_p2 exhausting [V] (thesis 4.1.1: 0.3).
+        underlap_fill_v: Δu_p2 filling [V] (thesis 4.1.1: 0.7); negative, an
+            overlap: the path stays shut that far past 5 V (a closed-centre spool's
+            dead band).
+        underlap_exh_v: Δu_p2 exhausting [V] (thesis 4.1.1: 0.3); negative, as above.
         null_leak_fraction: Flow scale of both paths at 5 V [-]: inside the
             null zone only clearance leakage flows (thesis 2.1 Δu_null; see
             :func:`~app.engine.physics.flow.null_scale`). 1 disables it
@@ -418,8 +420,9 @@ class DCVParams:
             raise ParameterError(f"model = {self.model!r} must be 'iso' or 'new'")
         check_range("c", self.c, 0.0, 100.0, lo_open=True, unit="l/(s·bar)")
         check_range("b", self.b, 0.0, 1.0, hi_open=True)
-        check_range("underlap_fill_v", self.underlap_fill_v, 0.0, 2.0, unit="V")
-        check_range("underlap_exh_v", self.underlap_exh_v, 0.0, 2.0, unit="V")
+        # below 0: an overlap, the spool's dead band around 5 V before the path opens
+        check_range("underlap_fill_v", self.underlap_fill_v, -2.0, 2.0, unit="V")
+        check_range("underlap_exh_v", self.underlap_exh_v, -2.0, 2.0, unit="V")
         check_range("null_leak_fraction", self.null_leak_fraction, 0.0, 1.0, lo_open=True)
         check_range("null_width_v", self.null_width_v, 0.0, 5.0, unit="V")
 

@@ -24,8 +24,11 @@ add (each at most three bounded parameters, named as in
    ΔBIC > 10 (strong evidence), the CI's lower end is above zero, GC ≥ 0.2,
    and it lowers the held-out RMS error of some channel by more than the
    family's *relevance* (the smallest error that matters on the rig, e.g. the
-   PRV's 0.01 bar deadband). Significant effects are added greedily (each
-   next one judged against the model that already has the previous ones).
+   PRV's 0.01 bar deadband); and its fit neither leaves every parameter of it
+   on a bound of its range nor keeps its gain once its dynamics are taken out
+   (the family's ``static_part``: a tube of no volume is a restriction).
+   Significant effects are added greedily (each next one judged against the
+   model that already has the previous ones).
 4. **Confusable**: a candidate that also explains the gap (significant, or
    relevant with a GC CI reaching the winner's) while the paired bootstrap CI
    of GC(winner) − GC(candidate) contains zero is reported as confusable —
@@ -42,7 +45,9 @@ replayed simulator): ``diff_step``, ``max_nfev`` and ``tol`` (its ``ftol`` and
 ``base_grid`` (a range per baseline parameter) for a grid start of the
 baseline's recalibration (run again with the first fit's values of the
 other parameters: :func:`recalibrate`) and, over those that ``rebase`` names, of a
-candidate's fit after its own grid,
+candidate's fit after its own grid, ``form_grid`` (ranges of baseline parameters
+of the model's form) for a grid whose best, beside the nominal form, ``base_grid``'s
+grid starts from,
 ``frozen(effects)`` naming parameters the candidate being added cannot trade with
 (held at the reference fit), ``rebase(effects)`` naming baseline parameters
 whose reference values may stand in for the candidate being added (the grid
@@ -50,6 +55,8 @@ and a second descent start them from their nominal values, free in that
 descent even where ``frozen`` holds them; the fit with the lower calibration
 cost is kept), ``prefetch(preps, params_list, effects)`` to compute
 predictions for many parameter sets at once (e.g. on all cores),
+``static_part(effect)`` giving the extra parameters that take a dynamic effect's
+dynamics out and their description (see :data:`STATIC_SHARE`),
 ``linear_start(preps, params, effects)`` giving, instead of the grid, a start for a
 candidate's descent with the parameters that enter the predictions (nearly)
 linearly at their least-squares values (or ``None``: the grid; with ``rebase``,
@@ -331,19 +338,21 @@ def _residuals(family: Family, preps: list[Any], meas: list[dict[str, np.ndarray
 
 def fit(family: Family, preps: list[Any], effects: tuple[str, ...] = (), start: dict[str, float] | None = None,
         scales: dict[str, float] | None = None, starts: list[dict[str, float]] | None = None,
-        stop: threading.Event | None = None, free: set[str] | None = None) -> Fit:
+        stop: threading.Event | None = None, free: set[str] | None = None,
+        hold: Iterable[str] = ()) -> Fit:
     """Bounded least squares of the baseline (plus ``effects``) on ``preps``.
 
     ``starts`` (several starting points) overrides ``start``: the descent
     starts from the one with the lowest cost. ``free`` names parameters the
-    family's ``frozen`` holds that this descent moves anyway. ``stop``, once
+    family's ``frozen`` holds that this descent moves anyway; ``hold``,
+    parameters it keeps at the first start's values besides. ``stop``, once
     set, ends the fit at its next cost evaluation with :class:`Cancelled`.
     """
     all_specs = _specs(family, effects)
     first = (starts or [start or {}])[0]
     # parameters the family says cannot interact with these effects stay where the
     # reference fit put them (e.g. flow capacities when only the torque balance changes)
-    frozen_names: set[str] = getattr(family, "frozen", lambda _e: set())(effects) - (free or set())
+    frozen_names: set[str] = (getattr(family, "frozen", lambda _e: set())(effects) - (free or set())) | set(hold)
     fixed = {s.name: min(max(first.get(s.name, s.x0), s.lo), s.hi) for s in all_specs if s.name in frozen_names}
     specs = [s for s in all_specs if s.name not in fixed]
     scales = scales or channel_scales(family, preps)
@@ -644,6 +653,8 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     off = ref.params | {p.name: p.x0 if p.off is None else p.off for p in new}
     typ = ref.params | {p.name: p.x0 for p in new}
     starts = [off, typ] if off != typ else [off]
+    form = list(getattr(family, "form_grid", ()))
+    hold = held_form(family, ref.params)
     points = int(getattr(family, "grid_points", 0))
     rounds = int(getattr(family, "grid_refinements", 1))
     rebase = set(getattr(family, "rebase", lambda _e: set())(effects))
@@ -669,6 +680,10 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
         # its grid put it: from nominal the descent had left them there (a vane leak's fit kept
         # the flow capacities and dead volumes at 1.00 × nominal for a true 0.92 / 0.82 / 1.19 ×,
         # at 6 × the truth's calibration cost)
+        # the model's form too, from its grid's own levels: the reference's form may stand in for
+        # the effect as well (a valve left leaking at its centre for a chamber that leaks)
+        if form and not hold:
+            st = _grid_start(family, calib, effects, st, form, 3, scales)
         grid_base = [p for p in getattr(family, "base_grid", ()) if p.name in rebase]
         if grid_base:
             st = _grid_start(family, calib, effects, st, grid_base, 3, scales)
@@ -676,12 +691,12 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
                 st = linear(calib, st, effects) or st
         # One descent, not one from each: a least-squares descent never ends above its start, so
         # the fit is still never worse than its effect-off start (see docs/diagnosis.md, "One descent")
-        f = fit(family, calib, effects, scales=scales, stop=stop, starts=[*starts, st], free=rebase)
+        f = fit(family, calib, effects, scales=scales, stop=stop, starts=[*starts, st], free=rebase, hold=hold)
     else:
         if lin_ref is None and points and new:
             raise_if_stopped(stop)
             starts.append(_grid_start(family, calib, effects, ref.params, new, points, scales, rounds))
-        f = fit(family, calib, effects, scales=scales, starts=starts, stop=stop)
+        f = fit(family, calib, effects, scales=scales, starts=starts, stop=stop, hold=hold)
     sc = score(family, held, f, blocks)
     gc = gap_closure(ref_sc, sc, norm)
     ci = bootstrap_gc(ref_sc, sc, norm)
@@ -695,18 +710,46 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     # from the baseline's parameters it refitted beside it (the browser test's effect-free rig once
     # named external_leakage at c = 1e-5 l/(s·bar), its off bound, with GC 0.79)
     gone = switched_off(new, f.params)
-    sig = dbic > BIC_STRONG and ci[0] > 0.0 and gc >= GC_MIN and relevant and not gone
+    # An effect whose every parameter its fit pushed onto a bound of its range (not where it
+    # vanishes) is mimicking a shape it cannot make: the data want something past its physics
+    # (the ranking already put such a fit below one inside its bounds: _rank_key)
+    pinned = not gone and bool(new) and all(p.name in f.at_bound for p in new)
+    sig = dbic > BIC_STRONG and ci[0] > 0.0 and gc >= GC_MIN and relevant and not gone and not pinned
+    static = None
+    part = getattr(family, "static_part", lambda _e: None)(effects[-1]) if sig else None
+    if part is not None:
+        # a dynamic effect whose gain stays once its dynamics are taken out is its static part:
+        # a flow form of the baseline's, not the effect
+        gc_static = gap_closure(ref_sc, score_at(family, held, f.params | part[0], effects, blocks), norm)
+        if gc_static >= STATIC_SHARE * gc:
+            sig, static = False, f"its gain stays with {part[1]} (GC {gc_static:.3g} of {gc:.3g})"
+    why = () if sig else _why_not(family, gc, ci, dbic, imp, relevant, gone,
+                                  [(p, f.params[p.name]) for p in new if pinned])
     return Candidate(effects[-1], f, sc, gc, ci, dbic, dict(zip(family.channels, map(float, nr), strict=True)),
                      imp, sig, relevant, gone, _rebased_gc(family, held, ref, ref_sc, f, new, norm, blocks),
-                     () if sig else _why_not(family, gc, ci, dbic, imp, relevant, gone))
+                     (*why, static) if static else why)
+
+
+def held_form(family: Family, params: dict[str, float]) -> list[str]:
+    """The family's form parameters (``form_grid``) if ``params`` has them all nominal, else none.
+
+    A form the recalibration kept nominal stays so in every later fit (see
+    :func:`recalibrate`); one it moved, those fits move on.
+    """
+    form = list(getattr(family, "form_grid", ()))
+    return [p.name for p in form] if form and all(params[p.name] == p.x0 for p in form) else []
 
 
 def _why_not(family: Family, gc: float, ci: tuple[float, float], dbic: float, imp: dict[str, float],
-             relevant: bool, gone: bool) -> tuple[str, ...]:
+             relevant: bool, gone: bool, pinned: Sequence[tuple[Param, float]] = ()) -> tuple[str, ...]:
     """The significance tests a candidate failed, in words a report's reader can check against its numbers."""
     out = []
     if gone:
         out.append("its fit left it switched off")
+    if pinned:
+        out.append("every parameter on a bound of its range (" + ", ".join(
+            f"{p.name.split('.', 1)[-1]} {v:.3g} {p.unit}, its {'lower' if abs(v - p.lo) <= abs(v - p.hi) else 'upper'}"
+            for p, v in pinned) + "): it mimics a shape it cannot make")
     if dbic <= BIC_STRONG:
         out.append(f"ΔBIC {dbic:.3g} ≤ {BIC_STRONG:g}")
     if ci[0] <= 0.0:
@@ -732,6 +775,10 @@ def _rebased_gc(family: Family, held: list[Any], ref: Fit, ref_sc: Scores, f: Fi
         return None
     return gap_closure(ref_sc, score_at(family, held, kept, f.effects[:-1], blocks), norm)
 
+
+STATIC_SHARE = 0.9
+"""A dynamic effect whose fit keeps this share of its gap closure with its dynamics taken out
+(the family's ``static_part``) is credited to its static part, not to the effect."""
 
 OFF_TOLERANCE = 1e-3
 """How near its ``off`` value a fitted parameter counts as there, as a share of its range
@@ -989,9 +1036,43 @@ def recalibrate(family: Family, calib: list[Any], scales: dict[str, float] | Non
     # a rough cost surface stalls the descent near its start: a family may name baseline
     # parameters to search on a grid first (the others at their nominal values)
     nominal = {s.name: s.x0 for s in family.baseline()}
+    form_grid = list(getattr(family, "form_grid", ()))
+    form = [p.name for p in form_grid]
+    base = _recalibrated(family, calib, nominal, scales, stop, hold=form)
+    if form:
+        # The model's form (where a valve starts to open) is recalibrated only where that lowers
+        # some channel's calibration RMS error by more than what matters on the rig (the family's
+        # relevance, as for a candidate). A cheaper fit alone is no evidence of the form: descents
+        # on this rippled cost end apart by more than small gains (from neighbouring starts, one on
+        # our own tube rig ended at 1.4 × another's), and a small gain bought the form's freedom
+        # for something else: on a rig whose friction differs per direction a centre 5 % closed,
+        # at 0.98 × the cost, took friction per direction from 0.15 to 0.06. A share of the cost
+        # would not do either: an effect's own misfit is in both (on a rig written apart from
+        # ours, bench/independent_rig.py, the valve's centre gave 0.13 × the cost without an
+        # effect, 0.8 × beside a heat exchange)
+        raise_if_stopped(stop)
+        start = _grid_start(family, calib, (), nominal, form_grid, 3, scales)
+        if any(start[n] != nominal[n] for n in form):
+            other = _recalibrated(family, calib, start, scales, stop)
+            if other.rss < base.rss and _relevant_gain(family, calib, base, other):
+                base = other
+    return base
+
+
+def _relevant_gain(family: Family, preps: list[Any], a: Fit, b: Fit) -> bool:
+    """Whether ``b`` lowers some channel's RMS error on ``preps`` below ``a``'s by more than the family's relevance."""
+    sa, sb = score(family, preps, a, 1), score(family, preps, b, 1)
+    rms_a = np.sqrt(sa.sse.sum(0) / np.maximum(sa.cnt.sum(0), 1))
+    rms_b = np.sqrt(sb.sse.sum(0) / np.maximum(sb.cnt.sum(0), 1))
+    return any(ra - rb > family.relevance.get(c, 0.0) for c, ra, rb in zip(family.channels, rms_a, rms_b, strict=True))
+
+
+def _recalibrated(family: Family, calib: list[Any], start: dict[str, float], scales: dict[str, float],
+                  stop: threading.Event | None, hold: Iterable[str] = ()) -> Fit:
+    """:func:`recalibrate` from ``start`` (``hold`` kept at its values): grid start, descent, the grid again."""
     base_grid = list(getattr(family, "base_grid", ()))
-    base_starts = [_grid_start(family, calib, (), nominal, base_grid, 3, scales)] if base_grid else [nominal]
-    base = fit(family, calib, (), scales=scales, starts=base_starts, stop=stop)
+    base_starts = [_grid_start(family, calib, (), start, base_grid, 3, scales)] if base_grid else [start]
+    base = fit(family, calib, (), scales=scales, starts=base_starts, stop=stop, hold=hold)
     if base_grid:
         # That grid held the other parameters (the sensors' gains, the friction levels) at
         # nominal. On two effect-free rigs logged once (docs/diagnosis.md, "The recalibration's
@@ -1003,7 +1084,7 @@ def recalibrate(family: Family, calib: list[Any], scales: dict[str, float] | Non
         again, again_cost = _grid_best(family, calib, (), base.params, base_grid, 3, scales)
         if again_cost < base.rss:
             raise_if_stopped(stop)
-            base = fit(family, calib, (), scales=scales, starts=[again], stop=stop)
+            base = fit(family, calib, (), scales=scales, starts=[again], stop=stop, hold=hold)
     return base
 
 
@@ -1074,7 +1155,8 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         # a reference that is not the baseline's best, so the baseline descends again from those
         # values and, if that is cheaper, the candidates are judged against it instead (once: the
         # report says so).
-        again = fit(family, calib, (), scales=scales, starts=[base.params | beaten["baseline_params"]], stop=stop)
+        again = fit(family, calib, (), scales=scales, starts=[base.params | beaten["baseline_params"]], stop=stop,
+                    hold=held_form(family, base.params))
         beaten |= {"calibration_cost_before": base.rss, "calibration_cost_after": again.rss,
                    "rereferenced": again.rss < base.rss}
         if again.rss < base.rss:

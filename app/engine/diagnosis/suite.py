@@ -77,6 +77,10 @@ STRUCTURAL: dict[str, tuple[str, Callable[[PlantParams], PlantParams]]] = {
                          lambda p: replace(p, dcv=replace(p.dcv, null_leak_fraction=2 * p.dcv.null_leak_fraction))),
     "prv_tau_spool_x3": ("a PRV spool three times slower (12 ms)",
                          lambda p: replace(p, prv=replace(p.prv, tau_spool=3 * p.prv.tau_spool))),
+    "dcv_closed_centre": ("a DCV shut at 5 V that opens past a 0.2 V dead band with no null zone (the model's: "
+                          "underlaps 0.7 / 0.3 V, a 1.6 V null zone); a form the recalibration can take",
+                          lambda p: replace(p, dcv=replace(p.dcv, underlap_fill_v=-0.2, underlap_exh_v=-0.2,
+                                                           null_width_v=0.0))),
     "friction_per_direction": ("static and Coulomb friction 15 % higher CCW and 15 % lower CW than the rest of "
                                "the friction's error (the model scales both directions by one factor)",
                                lambda p: friction_per_direction(p, 0.15)),
@@ -89,6 +93,8 @@ STRUCTURAL_PAIRS: dict[str, tuple[str, int]] = {
     "stribeck_j_1": ("inertia", 1), "dcv_null_leak_x2": ("vane_leakage", 0), "prv_b_0.45": ("supply_droop", 1),
     "prv_deadband_half": ("valve_dynamics", 1), "dcv_b_0.40": ("heat_transfer", 1),
     "prv_tau_spool_x3": ("sensor_bias", 0), "friction_per_direction": ("sensor_bias", 0),
+    # a chamber venting to atmosphere where the model's valve leaks at its centre: can the leak be told apart?
+    "dcv_closed_centre": ("external_leakage", 0),
 }
 """A withheld effect (and magnitude) on each form-mismatched rig: is it still found beside the mismatch?"""
 
@@ -181,6 +187,17 @@ def simulated_rig(seed: int = 0, param_error: float = 0.0, errors: str = "groupe
     return rig
 
 
+def _dcv_form(rig: PlantParams, n: PlantParams) -> dict[str, float]:
+    """The DCV centre's closure and dead band (RotaryFamily.dcv_centre) of ``rig``: exact for the thesis's
+    centre and for a shut one with equal overlaps and no null zone; other forms it cannot take."""
+    if (rig.dcv.underlap_fill_v, rig.dcv.underlap_exh_v, rig.dcv.null_width_v) == (
+            n.dcv.underlap_fill_v, n.dcv.underlap_exh_v, n.dcv.null_width_v):
+        return {"dcv_centre_closure": 0.0, "dcv_dead_band_v": 0.2}
+    if rig.dcv.underlap_fill_v == rig.dcv.underlap_exh_v <= 0.0 and rig.dcv.null_width_v == 0.0:
+        return {"dcv_centre_closure": 1.0, "dcv_dead_band_v": -rig.dcv.underlap_fill_v}
+    return {"dcv_centre_closure": 0.0, "dcv_dead_band_v": 0.2}
+
+
 def true_params(rig: PlantParams, effect: str | None) -> dict[str, float]:
     """The diagnosed model's parameters that reproduce ``rig`` (the suite's answer key).
 
@@ -197,6 +214,7 @@ def true_params(rig: PlantParams, effect: str | None) -> dict[str, float]:
          "dcv_c_scale": rig.dcv.c / n.dcv.c,
          "dead_volume_scale": 0.5 * (rig.vane.dead_volume_a / n.vane.dead_volume_a
                                      + rig.vane.dead_volume_b / n.vane.dead_volume_b),
+         **_dcv_form(rig, n),
          "gain_a": rig.sensors.pressure_gain_a, "gain_b": rig.sensors.pressure_gain_b,
          "friction_scale": ratio(fr.ts_ccw + fr.tc_ccw + fr.ts_cw + fr.tc_cw,
                                  nf.ts_ccw + nf.tc_ccw + nf.ts_cw + nf.tc_cw),
