@@ -1023,6 +1023,10 @@ def recalibrate(family: Family, calib: list[Any], scales: dict[str, float] | Non
                 stop: threading.Event | None = None) -> Fit:
     """The baseline fitted on prepared calibration logs: grid start, descent, and the grid again.
 
+    With the family's form parameters (``form_grid``) held at nominal; then,
+    from the form grid's best, with them free, kept only where that lowers
+    some channel's calibration RMS error by more than the family's relevance.
+
     Args:
         family: The rig family.
         calib: Prepared calibration logs (``family.prepare``).
