@@ -724,7 +724,7 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
         if gc_static >= STATIC_SHARE * gc:
             sig, static = False, f"its gain stays with {part[1]} (GC {gc_static:.3g} of {gc:.3g})"
     why = () if sig else _why_not(family, gc, ci, dbic, imp, relevant, gone,
-                                  [(p, f.params[p.name]) for p in new if pinned])
+                                  [(p, f.params[p.name]) for p in new] if pinned else [])
     return Candidate(effects[-1], f, sc, gc, ci, dbic, dict(zip(family.channels, map(float, nr), strict=True)),
                      imp, sig, relevant, gone, _rebased_gc(family, held, ref, ref_sc, f, new, norm, blocks),
                      (*why, static) if static else why)

@@ -82,8 +82,8 @@ SCORE_RATE_HZ = 200.0
 _PNEUMATIC_BASE = ("prv_c_scale", "dcv_c_scale", "dead_volume_scale")
 # the DCV's centre (see RotaryFamily.form_grid and dcv_centre): from the thesis's MPYE, whose paths both
 # leak at 5 V, towards a valve shut there that opens past a dead band
-_DCV_FORM = ("dcv_centre_closure", "dcv_dead_band_v")
-_DCV_FORM_NOMINAL = {"dcv_centre_closure": 0.0, "dcv_dead_band_v": 0.2}
+DCV_FORM_NOMINAL = {"dcv_centre_closure": 0.0, "dcv_dead_band_v": 0.2}
+_DCV_FORM = tuple(DCV_FORM_NOMINAL)
 _PNEUMATIC_EFFECTS = ("vane_leakage", "external_leakage", "heat_transfer", "tube_dynamics", "supply_droop",
                       "valve_dynamics")
 
@@ -378,8 +378,8 @@ class RotaryFamily:
     # null zone 1.6 V) to a valve shut at 5 V that opens past a dead band with no null zone. On an
     # effect-free rig written apart from ours (bench/independent_rig.py, a linear opening past 0.2 V)
     # the thesis's centre had left E at 0.044, 18 × the floor; that rig's own form gives 0.013
-    form_grid: tuple[Param, ...] = (Param("dcv_centre_closure", 0.0, 0.0, 1.0, "-"),
-                                    Param("dcv_dead_band_v", 0.2, 0.0, 0.4, "V"))
+    form_grid: tuple[Param, ...] = (Param("dcv_centre_closure", DCV_FORM_NOMINAL["dcv_centre_closure"], 0.0, 1.0, "-"),
+                                    Param("dcv_dead_band_v", DCV_FORM_NOMINAL["dcv_dead_band_v"], 0.0, 0.4, "V"))
 
     def __init__(self, nominal: PlantParams | None = None, cutoff_hz: float = 10.0, substep_hz: float = 1000.0,
                  friction_speed_hz: float = 25.0, phase_kept_s: float = PHASE_KEPT_S,
@@ -448,8 +448,8 @@ class RotaryFamily:
             Param("prv_c_scale", 1.0, 0.3, 3.0, "-", log=True),
             Param("dcv_c_scale", 1.0, 0.3, 3.0, "-", log=True),
             Param("dead_volume_scale", 1.0, 0.2, 5.0, "-", log=True),
-            Param("dcv_centre_closure", 0.0, 0.0, 1.0, "-"),
-            Param("dcv_dead_band_v", 0.2, 0.0, 0.6, "V"),
+            Param("dcv_centre_closure", DCV_FORM_NOMINAL["dcv_centre_closure"], 0.0, 1.0, "-"),
+            Param("dcv_dead_band_v", DCV_FORM_NOMINAL["dcv_dead_band_v"], 0.0, 0.6, "V"),
             Param("gain_a", 1.0, 0.8, 1.2, "-"),
             Param("gain_b", 1.0, 0.8, 1.2, "-"),
             Param("friction_scale", 1.0, 0.3, 3.0, "-", log=True),
@@ -603,7 +603,7 @@ class RotaryFamily:
             "prv_ce": conductance_si(n.prv.c_exhaust) * x.get("prv_c_scale", 1.0),
             "dcv_c": conductance_si(n.dcv.c) * x.get("dcv_c_scale", 1.0),
             "vd_a": n.vane.dead_volume_a * dv, "vd_b": n.vane.dead_volume_b * dv, "ps0": ps0_bar * BAR,
-            **self.dcv_centre(x.get("dcv_centre_closure", 0.0), x.get("dcv_dead_band_v", 0.2)),
+            **self.dcv_centre(*(x.get(n, v) for n, v in DCV_FORM_NOMINAL.items())),
         }
         if "vane_leakage" in effects:
             kw["vl_c"] = conductance_si(x["vane_leakage.c"])
@@ -659,7 +659,7 @@ class RotaryFamily:
         peff = tuple(e for e in effects if e in _PNEUMATIC_EFFECTS)
         # the sensors set where the replay starts (the chambers' first pressures are what they read)
         return (peff, *(round(x[n], 12) for n in _PNEUMATIC_BASE),
-                *(round(x.get(n, v), 12) for n, v in _DCV_FORM_NOMINAL.items()),
+                *(round(x.get(n, v), 12) for n, v in DCV_FORM_NOMINAL.items()),
                 *(round(v, 12) for v in self._sensors(x, effects)),
                 *(round(v, 12) for kk, v in sorted(x.items()) if kk.split(".")[0] in peff))
 

@@ -24,7 +24,7 @@ import numpy as np
 from app.engine.diagnosis.core import channel_spread, diagnose
 from app.engine.diagnosis.logs import Experiment
 from app.engine.diagnosis.protocol import run_protocol
-from app.engine.diagnosis.rotary import RotaryFamily
+from app.engine.diagnosis.rotary import DCV_FORM_NOMINAL, RotaryFamily
 from app.engine.diagnosis.run import PROTOCOL, split_by_coverage, split_last_third
 from app.engine.params import (
     HeatTransferEffect,
@@ -187,15 +187,12 @@ def simulated_rig(seed: int = 0, param_error: float = 0.0, errors: str = "groupe
     return rig
 
 
-def _dcv_form(rig: PlantParams, n: PlantParams) -> dict[str, float]:
-    """The DCV centre's closure and dead band (RotaryFamily.dcv_centre) of ``rig``: exact for the thesis's
-    centre and for a shut one with equal overlaps and no null zone; other forms it cannot take."""
-    if (rig.dcv.underlap_fill_v, rig.dcv.underlap_exh_v, rig.dcv.null_width_v) == (
-            n.dcv.underlap_fill_v, n.dcv.underlap_exh_v, n.dcv.null_width_v):
-        return {"dcv_centre_closure": 0.0, "dcv_dead_band_v": 0.2}
+def _dcv_form(rig: PlantParams) -> dict[str, float]:
+    """The DCV centre's closure and dead band (RotaryFamily.dcv_centre) of ``rig``: exact for a shut centre
+    with equal overlaps and no null zone; the thesis's centre (nominal) otherwise, exact for that rig."""
     if rig.dcv.underlap_fill_v == rig.dcv.underlap_exh_v <= 0.0 and rig.dcv.null_width_v == 0.0:
         return {"dcv_centre_closure": 1.0, "dcv_dead_band_v": -rig.dcv.underlap_fill_v}
-    return {"dcv_centre_closure": 0.0, "dcv_dead_band_v": 0.2}
+    return dict(DCV_FORM_NOMINAL)
 
 
 def true_params(rig: PlantParams, effect: str | None) -> dict[str, float]:
@@ -214,7 +211,7 @@ def true_params(rig: PlantParams, effect: str | None) -> dict[str, float]:
          "dcv_c_scale": rig.dcv.c / n.dcv.c,
          "dead_volume_scale": 0.5 * (rig.vane.dead_volume_a / n.vane.dead_volume_a
                                      + rig.vane.dead_volume_b / n.vane.dead_volume_b),
-         **_dcv_form(rig, n),
+         **_dcv_form(rig),
          "gain_a": rig.sensors.pressure_gain_a, "gain_b": rig.sensors.pressure_gain_b,
          "friction_scale": ratio(fr.ts_ccw + fr.tc_ccw + fr.ts_cw + fr.tc_cw,
                                  nf.ts_ccw + nf.tc_ccw + nf.ts_cw + nf.tc_cw),
