@@ -6,7 +6,9 @@ SPEC's numbers alone, in a different form wherever a modeller has a choice,
 and sharing no code with ``app/engine/physics``:
 
 - the PRV's internal regulator is a proportional spool with a symmetric dead
-  zone (0.02 bar) and no hysteresis (ours: wake at 0.03, rest at 0.01 bar);
+  zone (0.02 bar) and no hysteresis (ours: wake at 0.03, rest at 0.01 bar,
+  no dead zone; a form the recalibration may take since the thirty-first
+  session);
 - every orifice is ISO 6358 with a laminar region (linear below a 2 %
   pressure drop), integrated explicitly at 100 kHz (ours: linearly implicit
   at 2 kHz);
@@ -16,7 +18,8 @@ and sharing no code with ``app/engine/physics``:
   of its opening to the supply side and 0.10 % to exhaust);
 - friction is Karnopp's stick–slip with the Stribeck curve of Table 4.2 at
   3 bar for every pressure (ours: a velocity-level projection, the table
-  interpolated at the chamber pressures);
+  interpolated at the lower chamber pressure, or as far as the
+  recalibration's weight says at 3 bar);
 - one node per PRV outlet and line (ours: outlet and tube nodes).
 
 Its nominal values are the datasheet and thesis numbers, and each rig draws

@@ -711,7 +711,8 @@ def _stuck_tone_diagnosis(family: Any, monkeypatch: pytest.MonkeyPatch) -> tuple
                        {}) for k in range(2)]
 
     def stuck(fam: Any, calib: list[Any], scales: Any = None, stop: Any = None) -> Any:
-        return core.fit(fam, calib, (), scales=scales, starts=[{"a": 1.2}], stop=stop)
+        f = core.fit(fam, calib, (), scales=scales, starts=[{"a": 1.2}], stop=stop)
+        return f, f  # no form of its own
 
     singles: list[Any] = []
     real = core._evaluate
@@ -721,7 +722,7 @@ def _stuck_tone_diagnosis(family: Any, monkeypatch: pytest.MonkeyPatch) -> tuple
         singles.append(c)
         return c
 
-    monkeypatch.setattr(core, "recalibrate", stuck)
+    monkeypatch.setattr(core, "recalibrate_forms", stuck)
     monkeypatch.setattr(core, "_evaluate", kept)
     return diagnose(family, exps[:1], exps[1:]), singles
 

@@ -326,6 +326,9 @@ class PRVParams:
         tau_spool: Spool (pilot) time constant [s].
         deadband_on_bar: Error that wakes the regulator [bar].
         deadband_off_bar: Error below which it rests [bar] (≤ on).
+        dead_zone: Share of the rest band the spool's opening starts past [-]:
+            0 opens in proportion to the error (nominal), 1 to the error
+            beyond ``deadband_off_bar`` (a proportional spool with a dead zone).
         outlet_volume: Regulator outlet plus the line to the DCV [m³].
         z_max_v: Command range upper limit [V] (0–10 V ↔ 0–10 bar gauge).
     """
@@ -338,6 +341,7 @@ class PRVParams:
     tau_spool: float = 0.004
     deadband_on_bar: float = 0.03
     deadband_off_bar: float = 0.01
+    dead_zone: float = 0.0
     outlet_volume: float = 6.0e-6
     z_max_v: float = 10.0
 
@@ -350,6 +354,7 @@ class PRVParams:
         check_range("tau_spool", self.tau_spool, 0.0, 1.0, lo_open=True, unit="s")
         check_range("deadband_on_bar", self.deadband_on_bar, 0.0, 1.0, unit="bar")
         check_range("deadband_off_bar", self.deadband_off_bar, 0.0, self.deadband_on_bar, unit="bar")
+        check_range("dead_zone", self.dead_zone, 0.0, 1.0)
         check_range("outlet_volume", self.outlet_volume, 0.0, 1e-2, lo_open=True, unit="m³")
         check_range("z_max_v", self.z_max_v, 0.0, 10.0, lo_open=True, unit="V")
 

@@ -44,10 +44,12 @@ replayed simulator): ``diff_step``, ``max_nfev`` and ``tol`` (its ``ftol`` and
 (``grid_refinements`` finer grids around its best, default 1),
 ``base_grid`` (a range per baseline parameter) for a grid start of the
 baseline's recalibration (run again with the first fit's values of the
-other parameters: :func:`recalibrate`) and, over those that ``rebase`` names, of a
-candidate's fit after its own grid, ``form_grid`` (ranges of baseline parameters
-of the model's form) for a grid whose best, beside the nominal form, ``base_grid``'s
-grid starts from,
+other parameters: :func:`recalibrate`; ``base_grids``, several such groups
+gridded one after the other, ``base_grid_levels`` values per axis for each,
+default 3) and, over those that ``rebase`` names, of a
+candidate's fit after its own grid, ``form_grids`` (groups of ranges of baseline
+parameters of the model's form, e.g. one valve's) for grids, one group after the
+other, whose best, beside the nominal form, ``base_grid``'s grid starts from,
 ``frozen(effects)`` naming parameters the candidate being added cannot trade with
 (held at the reference fit), ``rebase(effects)`` naming baseline parameters
 whose reference values may stand in for the candidate being added (the grid
@@ -653,8 +655,8 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     off = ref.params | {p.name: p.x0 if p.off is None else p.off for p in new}
     typ = ref.params | {p.name: p.x0 for p in new}
     starts = [off, typ] if off != typ else [off]
-    form = list(getattr(family, "form_grid", ()))
     hold = held_form(family, ref.params)
+    moved = [g for g in form_groups(family) if g[0].name not in hold]
     points = int(getattr(family, "grid_points", 0))
     rounds = int(getattr(family, "grid_refinements", 1))
     rebase = set(getattr(family, "rebase", lambda _e: set())(effects))
@@ -682,9 +684,9 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
         # at 6 × the truth's calibration cost)
         # the model's form too, from its grid's own levels: the reference's form may stand in for
         # the effect as well (a valve left leaking at its centre for a chamber that leaks)
-        if form and not hold:
-            st = _grid_start(family, calib, effects, st, form, 3, scales)
-        grid_base = [p for p in getattr(family, "base_grid", ()) if p.name in rebase]
+        for group in moved:
+            st = _grid_start(family, calib, effects, st, group, 3, scales)
+        grid_base = [p for g in base_groups(family) for p in g if p.name in rebase]
         if grid_base:
             st = _grid_start(family, calib, effects, st, grid_base, 3, scales)
             if lin is not None and linear is not None:
@@ -730,14 +732,18 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
                      (*why, static) if static else why)
 
 
-def held_form(family: Family, params: dict[str, float]) -> list[str]:
-    """The family's form parameters (``form_grid``) if ``params`` has them all nominal, else none.
+def form_groups(family: Family) -> list[list[Param]]:
+    """The family's groups of form parameters (``form_grids``), each searched on its own grid."""
+    return [list(g) for g in getattr(family, "form_grids", ()) if g]
 
-    A form the recalibration kept nominal stays so in every later fit (see
+
+def held_form(family: Family, params: dict[str, float]) -> list[str]:
+    """The family's form parameters (``form_grids``) in groups that ``params`` has all nominal.
+
+    A group the recalibration kept nominal stays so in every later fit (see
     :func:`recalibrate`); one it moved, those fits move on.
     """
-    form = list(getattr(family, "form_grid", ()))
-    return [p.name for p in form] if form and all(params[p.name] == p.x0 for p in form) else []
+    return [p.name for g in form_groups(family) if all(params[p.name] == p.x0 for p in g) for p in g]
 
 
 def _why_not(family: Family, gc: float, ci: tuple[float, float], dbic: float, imp: dict[str, float],
@@ -817,7 +823,7 @@ def _grid_start(family: Family, preps: list[Any], effects: tuple[str, ...], ref:
 
 def _grid_best(family: Family, preps: list[Any], effects: tuple[str, ...], ref: dict[str, float],
                new: list[Param], points: int, scales: dict[str, float],
-               rounds: int = 1) -> tuple[dict[str, float], float]:
+               rounds: int = 1, levels: int | None = None) -> tuple[dict[str, float], float]:
     """The best point of a coarse grid over ``new`` (the rest at ``ref``), refined ``rounds`` times, and its cost.
 
     A replayed simulator with switching elements has a rough cost surface on
@@ -828,15 +834,18 @@ def _grid_best(family: Family, preps: list[Any], effects: tuple[str, ...], ref: 
     valleys narrower than a coarse step (a supply droop's resistance and time
     constant trade along one, a decade apart on the coarse grid) are found
     there. With 3 values per axis a refinement keeps the spacing, so it
-    recentres only once.
+    recentres only once. ``levels`` sets the values per axis outright.
     """
-    per = {1: points, 2: max(3, (points + 1) // 2)}.get(len(new), 3)
+    per = levels or {1: points, 2: max(3, (points + 1) // 2)}.get(len(new), 3)
     meas = [family.measured(p) for p in preps]
     prefetch = getattr(family, "prefetch", None)
 
     def best_of(axes: list[np.ndarray]) -> tuple[dict[str, float], float]:
         cands = [ref | {p.name: float(v) for p, v in zip(new, combo, strict=True)}
                  for combo in itertools.product(*axes)]
+        # on a tie the reference's own point wins (a form whose parameter has no effect where
+        # another puts it, such as a dead band at a centre that leaks, is no other form)
+        cands.sort(key=lambda v: v != ref)
         if prefetch is not None:
             prefetch(preps, cands, effects)
         best, best_cost = cands[0], math.inf
@@ -1023,9 +1032,19 @@ def recalibrate(family: Family, calib: list[Any], scales: dict[str, float] | Non
                 stop: threading.Event | None = None) -> Fit:
     """The baseline fitted on prepared calibration logs: grid start, descent, and the grid again.
 
-    With the family's form parameters (``form_grid``) held at nominal; then,
-    from the form grid's best, with them free, kept only where that lowers
-    some channel's calibration RMS error by more than the family's relevance.
+    The fit :func:`recalibrate_forms` ends with (see there).
+    """
+    return recalibrate_forms(family, calib, scales, stop)[1]
+
+
+def recalibrate_forms(family: Family, calib: list[Any], scales: dict[str, float] | None = None,
+                      stop: threading.Event | None = None) -> tuple[Fit, Fit]:
+    """The baseline fitted on prepared calibration logs with its form held, and with the form it may take.
+
+    With the family's form parameters (``form_grids``) held at nominal; then,
+    one group after the other, from that group's grid's best, with it free,
+    kept only where that lowers some channel's calibration RMS error by more
+    than the family's relevance.
 
     Args:
         family: The rig family.
@@ -1034,33 +1053,61 @@ def recalibrate(family: Family, calib: list[Any], scales: dict[str, float] | Non
         stop: Once set, ends the fit at its next cost evaluation with :class:`Cancelled`.
 
     Returns:
-        The baseline's fit (no effects).
+        The baseline's fit (no effects) with every form group held nominal, and
+        the one with the groups it kept (the same fit where it kept none).
     """
     scales = scales or channel_scales(family, calib)
     # a rough cost surface stalls the descent near its start: a family may name baseline
     # parameters to search on a grid first (the others at their nominal values)
     nominal = {s.name: s.x0 for s in family.baseline()}
-    form_grid = list(getattr(family, "form_grid", ()))
-    form = [p.name for p in form_grid]
-    base = _recalibrated(family, calib, nominal, scales, stop, hold=form)
-    if form:
-        # The model's form (where a valve starts to open) is recalibrated only where that lowers
-        # some channel's calibration RMS error by more than what matters on the rig (the family's
-        # relevance, as for a candidate). A cheaper fit alone is no evidence of the form: descents
-        # on this rippled cost end apart by more than small gains (from neighbouring starts, one on
-        # our own tube rig ended at 1.4 × another's), and a small gain bought the form's freedom
-        # for something else: on a rig whose friction differs per direction a centre 5 % closed,
-        # at 0.98 × the cost, took friction per direction from 0.15 to 0.06. A share of the cost
-        # would not do either: an effect's own misfit is in both (on a rig written apart from
-        # ours, bench/independent_rig.py, the valve's centre gave 0.13 × the cost without an
-        # effect, 0.8 × beside a heat exchange)
+    groups = form_groups(family)
+    held = [p.name for g in groups for p in g]
+    base = nominal_form = _recalibrated(family, calib, nominal, scales, stop, hold=held)
+    for group in groups:
+        # The model's form (where a valve starts to open, how its regulator rests) is recalibrated
+        # only where that lowers some channel's calibration RMS error by more than what matters on
+        # the rig (the family's relevance, as for a candidate). A cheaper fit alone is no evidence
+        # of the form: descents on this rippled cost end apart by more than small gains (from
+        # neighbouring starts, one on our own tube rig ended at 1.4 × another's), and a small gain
+        # bought the form's freedom for something else: on a rig whose friction differs per
+        # direction a centre 5 % closed, at 0.98 × the cost, took friction per direction from 0.15
+        # to 0.06. A share of the cost would not do either: an effect's own misfit is in both (on
+        # a rig written apart from ours, bench/independent_rig.py, the valve's centre gave 0.13 ×
+        # the cost without an effect, 0.8 × beside a heat exchange). Each group is judged against
+        # the fit with the groups before it as they were kept, so each must earn its own freedom
         raise_if_stopped(stop)
-        start = _grid_start(family, calib, (), nominal, form_grid, 3, scales)
-        if any(start[n] != nominal[n] for n in form):
-            other = _recalibrated(family, calib, start, scales, stop)
-            if other.rss < base.rss and _relevant_gain(family, calib, base, other):
-                base = other
-    return base
+        names = [p.name for p in group]
+        # The form's grid from the fit so far (the gains and friction it fitted; the flows and
+        # volumes its grid takes again): from the nominal values, a PRV regulator of another form
+        # was gridded with the pressure gains at 1.0 for a true 1.013, and the grid's best was the
+        # wrong form. Then from the nominal values, where that grid's best form differs: the fit so
+        # far bent its flows and volumes to stand in for the form too (on a rig written apart from
+        # ours with a heat exchange, the grid from the fit found a valve half shut at 5 V; from
+        # nominal, a shut one)
+        # With the gridded parameters (base_grids) back at their nominal values too: the flows and
+        # volumes the fit so far bent to stand in for the form sit in a valley their grid does not
+        # leave; the sensors' gains it fitted keep the grids out of the wrong basin (see
+        # _recalibrated). Coordinate grids do not always leave it: on our own rig with a PRV of
+        # another form the fit ends at 1.8 × the calibration cost of a descent from the truth
+        # (half way to the rig's dead zone), though at 0.45 × the nominal form's
+        gridded = {p.name: nominal[p.name] for g in base_groups(family) for p in g}
+        starts: dict[tuple[float, ...], dict[str, float]] = {}
+        start, cost = _grid_best(family, calib, (), base.params, group, 3, scales)
+        if cost < base.rss:  # some form on the grid fits better
+            starts[tuple(start[n] for n in names)] = start
+        again, _ = _grid_best(family, calib, (), base.params | gridded, group, 3, scales)
+        if any(again[n] != nominal[n] for n in names):
+            starts.setdefault(tuple(again[n] for n in names), again)
+        if not starts:
+            continue
+        free = [n for n in held if n not in names]
+        # each from there and with the gridded parameters at nominal: the cheapest stays
+        tried = {tuple(sorted(s.items())): s for st in starts.values() for s in (st, st | gridded)}
+        other = min((_recalibrated(family, calib, s, scales, stop, hold=free) for s in tried.values()),
+                    key=lambda f: f.rss)
+        if other.rss < base.rss and _relevant_gain(family, calib, base, other):
+            base, held = other, free
+    return nominal_form, base
 
 
 def _relevant_gain(family: Family, preps: list[Any], a: Fit, b: Fit) -> bool:
@@ -1074,10 +1121,26 @@ def _relevant_gain(family: Family, preps: list[Any], a: Fit, b: Fit) -> bool:
 def _recalibrated(family: Family, calib: list[Any], start: dict[str, float], scales: dict[str, float],
                   stop: threading.Event | None, hold: Iterable[str] = ()) -> Fit:
     """:func:`recalibrate` from ``start`` (``hold`` kept at its values): grid start, descent, the grid again."""
-    base_grid = list(getattr(family, "base_grid", ()))
-    base_starts = [_grid_start(family, calib, (), start, base_grid, 3, scales)] if base_grid else [start]
-    base = fit(family, calib, (), scales=scales, starts=base_starts, stop=stop, hold=hold)
-    if base_grid:
+    groups = base_groups(family)
+    levels = [*getattr(family, "base_grid_levels", ()), *[3] * len(groups)][:len(groups)]
+    meas = [family.measured(p) for p in calib]
+
+    def gridded(x: dict[str, float], cost: float) -> tuple[dict[str, float], float]:
+        # each group's grid from the point before it, kept only where it is cheaper: a start
+        # fitted already (the form's, from a recalibration) is often better than every coarse
+        # point, and the friction's cost is sharp (on our own rig with a PRV of another form, the
+        # friction grid's best had replaced a fitted friction, and the descent stalled at 2.3 × its
+        # torque error)
+        for group, lv in zip(groups, levels, strict=True):
+            cand, c = _grid_best(family, calib, (), x, group, 3, scales, levels=lv)
+            if c < cost:
+                x, cost = cand, c
+        return x, cost
+
+    r0 = _residuals(family, calib, meas, start, (), scales)
+    st, _ = gridded(start, float(r0 @ r0))
+    base = fit(family, calib, (), scales=scales, starts=[st], stop=stop, hold=hold)
+    if groups:
         # That grid held the other parameters (the sensors' gains, the friction levels) at
         # nominal. On two effect-free rigs logged once (docs/diagnosis.md, "The recalibration's
         # second grid") it chose the wrong basin, the PRV capacity at 1.0 and 1.25 × nominal for
@@ -1085,11 +1148,22 @@ def _recalibrated(family: Family, calib: list[Any], start: dict[str, float], sca
         # volume trade, stayed there at 1.4–1.6 × the calibration cost of a descent from the
         # truth. The same grid with the fit's own values of the others, descended from if lower,
         # ended at 1.08 and 0.95 ×.
-        again, again_cost = _grid_best(family, calib, (), base.params, base_grid, 3, scales)
+        again, again_cost = gridded(base.params, base.rss)
         if again_cost < base.rss:
             raise_if_stopped(stop)
             base = fit(family, calib, (), scales=scales, starts=[again], stop=stop, hold=hold)
     return base
+
+
+def base_groups(family: Family) -> list[list[Param]]:
+    """The family's groups of baseline parameters gridded before the recalibration's descent, one after the other.
+
+    ``base_grids`` if the family has it, else its single ``base_grid``.
+    """
+    groups = getattr(family, "base_grids", None)
+    if groups is None:
+        groups = (getattr(family, "base_grid", ()),)
+    return [list(g) for g in groups if g]
 
 
 def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
@@ -1149,9 +1223,42 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     floor = noise_floor(family, held, held_meas)
     norm = _Norm(spread, floor)
 
-    base = recalibrate(family, calib, scales, stop)
+    base, formed = recalibrate_forms(family, calib, scales, stop)
     base_sc = score(family, held, base, blocks)
     singles = [_evaluate(family, calib, held, base, base_sc, (c,), norm, blocks, scales, stop) for c in cands]
+    form = None
+    if formed is not base:
+        # The model's form competes with the effects: the baseline keeps the form the
+        # recalibration found only where the model the diagnosis would end with (the best
+        # significant effect, or none) predicts the held-out logs better with it than without.
+        # A form can stand in for an effect: on our own rig with 2 m of tube, a PRV regulator
+        # without hysteresis beside 4 × the dead volume closed 0.67 of the held-out gap the tube
+        # closes 0.69 of, and judged against that baseline the tube closed 0.17 (the true model
+        # itself 0.14). And an effect can hide a form: on a rig written apart from ours
+        # (bench/independent_rig.py) with a heat exchange, the form alone closed 0.08 of the gap,
+        # the heat exchange alone 0.22, and together 0.8
+        formed_sc = score(family, held, formed, blocks)
+        f_singles = [_evaluate(family, calib, held, formed, formed_sc, (c,), norm, blocks, scales, stop)
+                     for c in cands]
+
+        def ending(ref_sc: Scores, sings: list[Candidate]) -> tuple[Scores, str | None]:
+            best = max((c for c in sings if c.significant), key=lambda c: c.gap_closure, default=None)
+            return (best.scores, best.effect) if best is not None else (ref_sc, None)
+
+        (sc_without, eff_without), (sc_with, eff_with) = ending(base_sc, singles), ending(formed_sc, f_singles)
+        e_without, e_with = _e(sc_without, norm)[0], _e(sc_with, norm)[0]
+        # better beyond doubt, as an effect must be: by a hair, the form had taken a tube's place on
+        # our own rig (E 0.00854 against the tube's 0.00873; the 90 % CI of what it closes of the
+        # tube model's gap reaches below 0)
+        ci = bootstrap_gc(sc_without, sc_with, norm)
+        form = {"params": {n: formed.params[n] for n in held_form(family, base.params)
+                           if formed.params[n] != base.params[n]},
+                "gap_closure": gap_closure(base_sc, formed_sc, norm),
+                "e_after_with": e_with, "effect_with": eff_with,
+                "e_after_without": e_without, "effect_without": eff_without,
+                "closes_of_the_rest_ci90": list(ci), "kept": e_with < e_without and ci[0] > 0.0}
+        if form["kept"]:
+            base, base_sc, singles = formed, formed_sc, f_singles
     beaten = _baseline_beaten(singles)
     if beaten is not None:
         # A candidate fit's values closed the gap with its effect taken out (or left off): the
@@ -1243,7 +1350,9 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                         # channels no held-out sample could score: left out of every fit and E
                         "unscored_channels": unscored},
         "baseline": {"nrmse": dict(zip(chans, map(float, nr_base), strict=True)), "e": e_base,
-                     "identifiability": base.identifiability(), "gap": gap},
+                     "identifiability": base.identifiability(), "gap": gap,
+                     # the form the recalibration found beside the nominal one, and whether it was kept
+                     "form": form},
         "noise_floor": {"nrmse": dict(zip(chans, map(float, floor / spread), strict=True)), "e": e_floor},
         "where": where(family, held, base, floor, [getattr(e, "name", str(i)) for i, e in enumerate(held_exps)]),
         # an effect taken out of the verdict for an alternative keeps its single fit's significance

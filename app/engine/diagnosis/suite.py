@@ -69,8 +69,14 @@ STRUCTURAL: dict[str, tuple[str, Callable[[PlantParams], PlantParams]]] = {
                    lambda p: replace(p, dcv=replace(p.dcv, b=0.40))),
     "prv_b_0.45": ("the PRV's critical pressure ratios 0.45 (the model's: 0.30)",
                    lambda p: replace(p, prv=replace(p.prv, b_supply=0.45, b_exhaust=0.45))),
-    "prv_deadband_half": ("the PRV regulator wakes at 0.015 bar and rests at 0.005 (the model's: 0.03 / 0.01)",
+    "prv_deadband_half": ("the PRV regulator wakes at 0.015 bar and rests at 0.005 (the model's: 0.03 / 0.01); "
+                          "a form the recalibration can take",
                           lambda p: replace(p, prv=replace(p.prv, deadband_on_bar=0.015, deadband_off_bar=0.005))),
+    "prv_dead_zone": ("the PRV regulator wakes and rests at 0.02 bar and opens its spool in proportion to the "
+                      "error past that (the model's: wakes at 0.03, rests at 0.01, opens in proportion to the "
+                      "whole error); a form the recalibration can take",
+                      lambda p: replace(p, prv=replace(p.prv, deadband_on_bar=0.02, deadband_off_bar=0.02,
+                                                       dead_zone=1.0))),
     "stribeck_j_1": ("a Stribeck shape exponent of 1 (the model's: 2, thesis Eq 3.14)",
                      lambda p: replace(p, friction=replace(p.friction, shape_j=1.0))),
     "dcv_null_leak_x2": ("twice the DCV's clearance leak at 5 V",
@@ -95,6 +101,8 @@ STRUCTURAL_PAIRS: dict[str, tuple[str, int]] = {
     "prv_tau_spool_x3": ("sensor_bias", 0), "friction_per_direction": ("sensor_bias", 0),
     # a chamber venting to atmosphere where the model's valve leaks at its centre: can the leak be told apart?
     "dcv_closed_centre": ("external_leakage", 0),
+    # a regulator resting where the model's would not, beside a slower one: can the lag be told apart?
+    "prv_dead_zone": ("valve_dynamics", 0),
 }
 """A withheld effect (and magnitude) on each form-mismatched rig: is it still found beside the mismatch?"""
 
@@ -187,12 +195,21 @@ def simulated_rig(seed: int = 0, param_error: float = 0.0, errors: str = "groupe
     return rig
 
 
-def _dcv_form(rig: PlantParams) -> dict[str, float]:
-    """The DCV centre's closure and dead band (RotaryFamily.dcv_centre) of ``rig``: exact for a shut centre
-    with equal overlaps and no null zone; the thesis's centre (nominal) otherwise, exact for that rig."""
+def _form(rig: PlantParams) -> dict[str, float]:
+    """The model's form (RotaryFamily.dcv_centre and prv_regulator) that ``rig`` has.
+
+    The DCV centre's closure and dead band: exact for a shut centre with equal
+    overlaps and no null zone; the thesis's centre (nominal) otherwise, exact
+    for that rig. The PRV regulator's band, hysteresis and dead zone: exact
+    (its gain and lag are the nominal's on every rig of the suite).
+    """
+    dcv = dict(DCV_FORM_NOMINAL)
     if rig.dcv.underlap_fill_v == rig.dcv.underlap_exh_v <= 0.0 and rig.dcv.null_width_v == 0.0:
-        return {"dcv_centre_closure": 1.0, "dcv_dead_band_v": -rig.dcv.underlap_fill_v}
-    return dict(DCV_FORM_NOMINAL)
+        dcv = {"dcv_centre_closure": 1.0, "dcv_dead_band_v": -rig.dcv.underlap_fill_v}
+    r, n = rig.prv, PlantParams().prv
+    band = (r.deadband_on_bar + r.deadband_off_bar) / (n.deadband_on_bar + n.deadband_off_bar)
+    hyst = (r.deadband_on_bar - r.deadband_off_bar) / (n.deadband_on_bar - n.deadband_off_bar) / band
+    return dcv | {"prv_band_scale": band, "prv_hysteresis_scale": hyst, "prv_dead_zone": r.dead_zone}
 
 
 def true_params(rig: PlantParams, effect: str | None) -> dict[str, float]:
@@ -211,11 +228,12 @@ def true_params(rig: PlantParams, effect: str | None) -> dict[str, float]:
          "dcv_c_scale": rig.dcv.c / n.dcv.c,
          "dead_volume_scale": 0.5 * (rig.vane.dead_volume_a / n.vane.dead_volume_a
                                      + rig.vane.dead_volume_b / n.vane.dead_volume_b),
-         **_dcv_form(rig),
+         **_form(rig),
          "gain_a": rig.sensors.pressure_gain_a, "gain_b": rig.sensors.pressure_gain_b,
          "friction_scale": ratio(fr.ts_ccw + fr.tc_ccw + fr.ts_cw + fr.tc_cw,
                                  nf.ts_ccw + nf.tc_ccw + nf.ts_cw + nf.tc_cw),
-         "viscous_scale": ratio(fr.b_ccw + fr.b_cw, nf.b_ccw + nf.b_cw)}
+         "viscous_scale": ratio(fr.b_ccw + fr.b_cw, nf.b_ccw + nf.b_cw),
+         "friction_pressure_weight": 1.0}  # the simulator reads Table 4.2 at the lower chamber pressure
     if effect is not None:
         names = {p.name for p in RotaryFamily().effect(effect)}
         x |= {f"{effect}.{k}": float(v) for k, v in asdict(getattr(rig.effects, effect)).items()

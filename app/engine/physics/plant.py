@@ -97,7 +97,7 @@ _KERNEL_FIELDS = (
     "lugre_on", "sigma0", "sigma1",
     "p_atm", "t_atm",
     "prv_cs", "prv_bs", "prv_ce", "prv_be", "prv_gain", "prv_tau", "prv_decay",
-    "prv_db_on", "prv_db_off", "prv_vol", "z_max",
+    "prv_db_on", "prv_db_off", "prv_dz", "prv_vol", "z_max",
     "dcv_new", "dcv_c", "dcv_b", "ul_f", "ul_e", "null_s0", "null_w", "mp",
     "nm_u", "nm_ps", "nm_af", "nm_ae", "nm_ef", "nm_ee", "nm_gf", "nm_ge", "nm_kf", "nm_ke", "nm_usw",
     "ps0", "droop_on", "droop_r", "droop_tau",
@@ -180,6 +180,7 @@ def _build_kernel_cached(p: PlantParams) -> Any:
         prv_gain=p.prv.gain_per_bar / BAR, prv_tau=p.prv.tau_spool,
         prv_decay=math.exp(-(1.0 / p.substep_hz) / p.prv.tau_spool),
         prv_db_on=p.prv.deadband_on_bar * BAR, prv_db_off=p.prv.deadband_off_bar * BAR,
+        prv_dz=p.prv.dead_zone * p.prv.deadband_off_bar * BAR,
         prv_vol=p.prv.outlet_volume, z_max=p.prv.z_max_v,
         dcv_new=dcv.model == "new", dcv_c=dcv_c, dcv_b=dcv.b,
         ul_f=dcv.underlap_fill_v, ul_e=dcv.underlap_exh_v, null_s0=dcv.null_leak_fraction, null_w=dcv.null_width_v,
@@ -561,7 +562,8 @@ def _solve_network(jac: np.ndarray, dpdm: np.ndarray, h: float, f: np.ndarray, d
 
 @njit(cache=True, inline="always", error_model="numpy")
 def regulator_update(
-    x: np.ndarray, side: int, p_set: float, p_out: float, gain: float, db_on: float, db_off: float, decay: float
+    x: np.ndarray, side: int, p_set: float, p_out: float, gain: float, db_on: float, db_off: float, dz: float,
+    decay: float,
 ) -> None:
     """Advance PRV ``side``'s internal regulator and spool by one substep.
 
@@ -573,6 +575,7 @@ def regulator_update(
         gain: Spool opening per pascal of error [1/Pa].
         db_on: Error that wakes the regulator [Pa].
         db_off: Error below which it rests [Pa].
+        dz: The spool opens in proportion to the error beyond this [Pa].
         decay: exp(−h/τ_spool) [-].
     """
     e = p_set - p_out
@@ -586,8 +589,18 @@ def regulator_update(
     x[I_HA + side] = awake
     xc = 0.0
     if awake > 0.5:
-        xc = min(max(gain * e, -1.0), 1.0)
+        xc = min(max(gain * spool_error(e, dz), -1.0), 1.0)
     x[I_XA + side] = xc + (x[I_XA + side] - xc) * decay
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def spool_error(e: float, dz: float) -> float:
+    """The regulator's error past its dead zone ``dz`` [Pa] (``e`` itself for none)."""
+    if e > dz:
+        return e - dz
+    if e < -dz:
+        return e + dz
+    return 0.0
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -638,7 +651,7 @@ def step_pneumatics(x: np.ndarray, cmd: np.ndarray, k: Any, work: np.ndarray, ja
     decay = k.prv_decay
     for s in range(2):
         p_set = k.p_atm + min(max(x[I_ZA + s], 0.0), k.z_max) * BAR + cmd[C_DPA + s]
-        regulator_update(x, s, p_set, p[N_OA + 3 * s], k.prv_gain, k.prv_db_on, k.prv_db_off, decay)
+        regulator_update(x, s, p_set, p[N_OA + 3 * s], k.prv_gain, k.prv_db_on, k.prv_db_off, k.prv_dz, decay)
     # 2. gas masses, linearly implicit Euler
     q_sup = pneumatic_flows(p, tn, x, k, f, jac)
     dm = work[4 * NN : 5 * NN]
@@ -891,7 +904,7 @@ def rhs(t: float, x: np.ndarray, cmd: np.ndarray, k: Any, prog_t: np.ndarray, pr
     for s in range(2):
         z = min(max(xx[I_ZA + s], 0.0), k.z_max)
         e = k.p_atm + z * BAR + cmd[C_DPA + s] - p[N_OA + 3 * s]
-        xc = min(max(k.prv_gain * e, -1.0), 1.0) if x[I_HA + s] > 0.5 else 0.0
+        xc = min(max(k.prv_gain * spool_error(e, k.prv_dz), -1.0), 1.0) if x[I_HA + s] > 0.5 else 0.0
         dx[I_XA + s] = (xc - x[I_XA + s]) / k.prv_tau
     w = x[I_VEL]
     if k.heat_on:
