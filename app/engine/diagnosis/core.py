@@ -1077,19 +1077,14 @@ def recalibrate_forms(family: Family, calib: list[Any], scales: dict[str, float]
         # the fit with the groups before it as they were kept, so each must earn its own freedom
         raise_if_stopped(stop)
         names = [p.name for p in group]
-        # The form's grid from the fit so far (the gains and friction it fitted; the flows and
-        # volumes its grid takes again): from the nominal values, a PRV regulator of another form
-        # was gridded with the pressure gains at 1.0 for a true 1.013, and the grid's best was the
-        # wrong form. Then from the nominal values, where that grid's best form differs: the fit so
-        # far bent its flows and volumes to stand in for the form too (on a rig written apart from
-        # ours with a heat exchange, the grid from the fit found a valve half shut at 5 V; from
-        # nominal, a shut one)
-        # With the gridded parameters (base_grids) back at their nominal values too: the flows and
-        # volumes the fit so far bent to stand in for the form sit in a valley their grid does not
-        # leave; the sensors' gains it fitted keep the grids out of the wrong basin (see
-        # _recalibrated). Coordinate grids do not always leave it: on our own rig with a PRV of
-        # another form the fit ends at 1.8 × the calibration cost of a descent from the truth
-        # (half way to the rig's dead zone), though at 0.45 × the nominal form's
+        # The form's grid runs from the fit so far (the gains and friction it fitted): from the
+        # nominal values, a PRV regulator of another form was gridded with the pressure gains at
+        # 1.0 for a true 1.013, and the grid's best was the wrong form. It runs again with the
+        # gridded parameters (base_grids) back at their nominal values, and each best form is
+        # descended from both: the flows and volumes the fit so far bent to stand in for the form
+        # sit in a valley their grid does not leave. Coordinate grids do not always leave it: on
+        # our own rig with a PRV of another form the fit ends at 1.8 × the calibration cost of a
+        # descent from the truth (half way to the rig's dead zone), 0.45 × the nominal form's
         gridded = {p.name: nominal[p.name] for g in base_groups(family) for p in g}
         starts: dict[tuple[float, ...], dict[str, float]] = {}
         start, cost = _grid_best(family, calib, (), base.params, group, 3, scales)

@@ -397,7 +397,7 @@ class RotaryFamily:
     friction_grid: tuple[Param, ...] = (Param("friction_scale", 1.0, 0.8, 1.25, "-", log=True),
                                         Param("viscous_scale", 1.0, 0.8, 1.25, "-", log=True),
                                         Param("friction_pressure_weight", 1.0, 0.0, 1.0, "-"))
-    # searched beside base_grid, one group after the other (see core.recalibrate): the model's form,
+    # searched beside base_grid, one group after the other (see core.recalibrate_forms): the model's form,
     # where a rig written apart from ours need not share it. The DCV's centre, from the thesis's MPYE
     # (underlaps 0.7 / 0.3 V, null zone 1.6 V) to a valve shut at 5 V that opens past a dead band with
     # no null zone: on an effect-free rig written apart from ours (bench/independent_rig.py, a linear
@@ -690,7 +690,7 @@ class RotaryFamily:
         The nominal regulator (:class:`~app.engine.params.PRVParams`) wakes at
         0.03 bar of error, rests below 0.01 and opens its spool in proportion
         to the error: a guess made to reproduce the Default controller's
-        steady error and chatter (thesis 4.3), not a datasheet's number. Where
+        steady error and chatter, not a datasheet's number. Where
         a chamber rests after each fill depends on that form: on a rig written
         apart from ours (bench/independent_rig.py, a spool that opens in
         proportion to the error past a 0.02 bar dead zone, no hysteresis) the
