@@ -1242,16 +1242,18 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
 
         (sc_without, eff_without), (sc_with, eff_with) = ending(base_sc, singles), ending(formed_sc, f_singles)
         e_without, e_with = _e(sc_without, norm)[0], _e(sc_with, norm)[0]
-        # better beyond doubt, as an effect must be: by a hair, the form had taken a tube's place on
-        # our own rig (E 0.00854 against the tube's 0.00873; the 90 % CI of what it closes of the
-        # tube model's gap reaches below 0)
+        # what the form closes of the other ending's gap, with its 90 % CI, is reported, not a rule:
+        # required above 0, it kept the nominal form where it had won by a hair on our own rig (a
+        # tube's place, E 0.00854 against 0.00873, which then fell under the relevance anyway), and
+        # on a rig written apart from ours (bench/independent_rig.py) it turned the larger heat
+        # exchange's verdict into vane_leakage (the heat exchange ranked second, GC 0.11 for 0.54)
         ci = bootstrap_gc(sc_without, sc_with, norm)
         form = {"params": {n: formed.params[n] for n in held_form(family, base.params)
                            if formed.params[n] != base.params[n]},
                 "gap_closure": gap_closure(base_sc, formed_sc, norm),
                 "e_after_with": e_with, "effect_with": eff_with,
                 "e_after_without": e_without, "effect_without": eff_without,
-                "closes_of_the_rest_ci90": list(ci), "kept": e_with < e_without and ci[0] > 0.0}
+                "closes_of_the_rest_ci90": list(ci), "kept": e_with < e_without}
         if form["kept"]:
             base, base_sc, singles = formed, formed_sc, f_singles
     beaten = _baseline_beaten(singles)
