@@ -767,9 +767,9 @@ def test_friction_that_does_not_follow_the_pressures_is_recalibrated() -> None:
     scales = channel_scales(fam, preps)
     base = recalibrate(fam, preps, scales)
     assert base.params["friction_pressure_weight"] < 0.3, base.params
-    truth = base.params | {"friction_pressure_weight": 0.0,
-                           "friction_scale": true_params(base_rig, None)["friction_scale"],
-                           "viscous_scale": true_params(base_rig, None)["viscous_scale"]}
+    levels = true_params(base_rig, None)
+    truth = base.params | {"friction_pressure_weight": 0.0, "friction_scale": levels["friction_scale"],
+                           "viscous_scale": levels["viscous_scale"]}
     following = base.params | {"friction_pressure_weight": 1.0}
 
     def torque_rms(x: dict[str, float]) -> float:

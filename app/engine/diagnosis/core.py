@@ -48,8 +48,9 @@ other parameters: :func:`recalibrate`; ``base_grids``, several such groups
 gridded one after the other, ``base_grid_levels`` values per axis for each,
 default 3) and, over those that ``rebase`` names, of a
 candidate's fit after its own grid, ``form_grids`` (groups of ranges of baseline
-parameters of the model's form, e.g. one valve's) for grids, one group after the
-other, whose best, beside the nominal form, ``base_grid``'s grid starts from,
+parameters of the model's form, e.g. one valve's) recalibrated one group after the
+other beside the nominal form (:func:`recalibrate_forms`) and searched again in a
+candidate's fit where the recalibration moved them,
 ``frozen(effects)`` naming parameters the candidate being added cannot trade with
 (held at the reference fit), ``rebase(effects)`` naming baseline parameters
 whose reference values may stand in for the candidate being added (the grid
@@ -703,9 +704,7 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
     gc = gap_closure(ref_sc, sc, norm)
     ci = bootstrap_gc(ref_sc, sc, norm)
     _, nr = _e(sc, norm)
-    rms_ref = np.sqrt(ref_sc.sse.sum(0) / np.maximum(ref_sc.cnt.sum(0), 1))
-    rms_new = np.sqrt(sc.sse.sum(0) / np.maximum(sc.cnt.sum(0), 1))
-    imp = {c: float(a - b) for c, a, b in zip(family.channels, rms_ref, rms_new, strict=True)}
+    imp = rms_gain(family, ref_sc, sc)
     relevant = any(imp[c] > family.relevance.get(c, 0.0) for c in family.channels)
     dbic = ref.bic - f.bic
     # An effect its own fit left where it vanishes explains nothing: whatever that fit gained came
@@ -1085,19 +1084,19 @@ def recalibrate_forms(family: Family, calib: list[Any], scales: dict[str, float]
         # sit in a valley their grid does not leave. Coordinate grids do not always leave it: on
         # our own rig with a PRV of another form the fit ends at 1.8 × the calibration cost of a
         # descent from the truth (half way to the rig's dead zone), 0.45 × the nominal form's
-        gridded = {p.name: nominal[p.name] for g in base_groups(family) for p in g}
+        at_nominal = {p.name: nominal[p.name] for g in base_groups(family) for p in g}
         starts: dict[tuple[float, ...], dict[str, float]] = {}
         start, cost = _grid_best(family, calib, (), base.params, group, 3, scales)
         if cost < base.rss:  # some form on the grid fits better
             starts[tuple(start[n] for n in names)] = start
-        again, _ = _grid_best(family, calib, (), base.params | gridded, group, 3, scales)
+        again, _ = _grid_best(family, calib, (), base.params | at_nominal, group, 3, scales)
         if any(again[n] != nominal[n] for n in names):
             starts.setdefault(tuple(again[n] for n in names), again)
         if not starts:
             continue
         free = [n for n in held if n not in names]
         # each from there and with the gridded parameters at nominal: the cheapest stays
-        tried = {tuple(sorted(s.items())): s for st in starts.values() for s in (st, st | gridded)}
+        tried = {tuple(sorted(s.items())): s for st in starts.values() for s in (st, st | at_nominal)}
         other = min((_recalibrated(family, calib, s, scales, stop, hold=free) for s in tried.values()),
                     key=lambda f: f.rss)
         if other.rss < base.rss and _relevant_gain(family, calib, base, other):
@@ -1107,10 +1106,14 @@ def recalibrate_forms(family: Family, calib: list[Any], scales: dict[str, float]
 
 def _relevant_gain(family: Family, preps: list[Any], a: Fit, b: Fit) -> bool:
     """Whether ``b`` lowers some channel's RMS error on ``preps`` below ``a``'s by more than the family's relevance."""
-    sa, sb = score(family, preps, a, 1), score(family, preps, b, 1)
-    rms_a = np.sqrt(sa.sse.sum(0) / np.maximum(sa.cnt.sum(0), 1))
-    rms_b = np.sqrt(sb.sse.sum(0) / np.maximum(sb.cnt.sum(0), 1))
-    return any(ra - rb > family.relevance.get(c, 0.0) for c, ra, rb in zip(family.channels, rms_a, rms_b, strict=True))
+    gain = rms_gain(family, score(family, preps, a, 1), score(family, preps, b, 1))
+    return any(gain[c] > family.relevance.get(c, 0.0) for c in family.channels)
+
+
+def rms_gain(family: Family, a: Scores, b: Scores) -> dict[str, float]:
+    """Per channel, how far ``b``'s RMS error lies below ``a``'s (pooled over the units)."""
+    rms_a, rms_b = (np.sqrt(x.sse.sum(0) / np.maximum(x.cnt.sum(0), 1)) for x in (a, b))
+    return {c: float(ra - rb) for c, ra, rb in zip(family.channels, rms_a, rms_b, strict=True)}
 
 
 def _recalibrated(family: Family, calib: list[Any], start: dict[str, float], scales: dict[str, float],
