@@ -132,3 +132,23 @@ def test_logs_whose_torque_cannot_be_scored_anywhere_leave_it_out_and_say_so(
     assert set(r["baseline"]["nrmse"]) == {"p_a", "p_b", "p_s"} and np.isfinite(r["how_far"]["e_before"])
     assert "nan" not in r["verdict"]["summary"]
     assert "not scored: torque" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_tube_behind_a_valve_of_another_form_is_fitted_beside_that_form(tmp_path: Path) -> None:
+    """5 m of 4 mm tube on the rig written apart from ours, whose DCVs are shut at their centre and
+    whose regulators have no hysteresis. Recalibrated without the tube, the baseline takes that form
+    and 4.8 × the dead volume. The tube's grid, run under the nominal form alone, chose 10 cm of
+    12 mm bore (GC 0.14, not significant); run again beside the form the recalibration found, the fit
+    recovers the tube and gives the dead volume back (docs/diagnosis.md, "A tube beside a form")."""
+    from app.engine.diagnosis.run import diagnose_dir
+    from bench import independent_rig as ir
+
+    ir.run_rig(tmp_path, 0, "tube_dynamics", 1.0, centre_leak=0.0, magnitude=2)
+    r = diagnose_dir(tmp_path)
+    base = r["baseline"]["identifiability"]["params"]
+    assert r["baseline"]["form"]["kept"] and base["dead_volume_scale"] > 3.0, base  # the tube absorbed
+    tube = next(c for c in r["ranking"] if c["effect"] == "tube_dynamics")
+    assert tube["params"]["tube_dynamics.length"] == pytest.approx(5.0, rel=0.3), tube["params"]
+    assert tube["baseline_params"]["dead_volume_scale"] < 2.0, tube["baseline_params"]
+    assert tube["significant"] and r["verdict"]["effects"] == ["tube_dynamics"], r["verdict"]

@@ -50,7 +50,8 @@ default 3) and, over those that ``rebase`` names, of a
 candidate's fit after its own grid, ``form_grids`` (groups of ranges of baseline
 parameters of the model's form, e.g. one valve's) recalibrated one group after the
 other beside the nominal form (:func:`recalibrate_forms`) and searched again in a
-candidate's fit where the recalibration moved them,
+candidate's fit where the recalibration moved them (that fit's grid then runs both
+from the nominal form and beside the reference's),
 ``frozen(effects)`` naming parameters the candidate being added cannot trade with
 (held at the reference fit), ``rebase(effects)`` naming baseline parameters
 whose reference values may stand in for the candidate being added (the grid
@@ -675,26 +676,41 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
         # with those parameters at their nominal values; the reference's own starts (the effect
         # off or typical) stay in the running, and the cheapest start is descended from.
         raise_if_stopped(stop)
-        # an effect with a linear start needs no grid of its own, only that start from the
-        # nominal values, taken again once the baseline's grid has moved them
-        lin = linear(calib, prior | {p.name: off[p.name] for p in new}, effects) if linear is not None else None
-        st = lin if lin is not None else _grid_start(family, calib, effects, prior, new, points, scales, rounds)
-        # then the nominal values themselves move on the baseline's own grid, the effect where
-        # its grid put it: from nominal the descent had left them there (a vane leak's fit kept
-        # the flow capacities and dead volumes at 1.00 × nominal for a true 0.92 / 0.82 / 1.19 ×,
-        # at 6 × the truth's calibration cost)
-        # the model's form too, from its grid's own levels: the reference's form may stand in for
-        # the effect as well (a valve left leaking at its centre for a chamber that leaks)
-        for group in moved:
-            st = _grid_start(family, calib, effects, st, group, 3, scales)
         grid_base = [p for g in base_groups(family) for p in g if p.name in rebase]
-        if grid_base:
-            st = _grid_start(family, calib, effects, st, grid_base, 3, scales)
-            if lin is not None and linear is not None:
-                st = linear(calib, st, effects) or st
+
+        def gridded(p0: dict[str, float]) -> dict[str, float]:
+            # an effect with a linear start needs no grid of its own, only that start from the
+            # nominal values, taken again once the baseline's grid has moved them
+            lin = linear(calib, p0 | {p.name: off[p.name] for p in new}, effects) if linear is not None else None
+            st = lin if lin is not None else _grid_start(family, calib, effects, p0, new, points, scales, rounds)
+            # then the nominal values themselves move on the baseline's own grid, the effect where
+            # its grid put it: from nominal the descent had left them there (a vane leak's fit kept
+            # the flow capacities and dead volumes at 1.00 × nominal for a true 0.92 / 0.82 / 1.19 ×,
+            # at 6 × the truth's calibration cost)
+            # the model's form too, from its grid's own levels: the reference's form may stand in for
+            # the effect as well (a valve left leaking at its centre for a chamber that leaks)
+            for group in moved:
+                st = _grid_start(family, calib, effects, st, group, 3, scales)
+            if grid_base:
+                st = _grid_start(family, calib, effects, st, grid_base, 3, scales)
+                if lin is not None and linear is not None:
+                    st = linear(calib, st, effects) or st
+            return st
+
+        grid_starts = [gridded(prior)]
+        # and where the reference moved the model's form, the effect's grid runs again beside the
+        # form it found, the flows and volumes still nominal: a form far from nominal (a valve shut
+        # at its centre, a regulator without hysteresis) is more than the form grid's three levels
+        # per parameter find back, and under the nominal form the effect's grid chose another basin
+        # (on a rig written apart from ours, bench/independent_rig.py, a 5 m tube's grid chose 10 cm
+        # of 12 mm bore, GC 0.14; beside the form the recalibration found, 4.9 m of 3.4 mm, GC 0.73)
+        beside_form = prior | {p.name: ref.params[p.name] for g in moved for p in g}
+        if beside_form != prior:
+            grid_starts.append(gridded(beside_form))
         # One descent, not one from each: a least-squares descent never ends above its start, so
         # the fit is still never worse than its effect-off start (see docs/diagnosis.md, "One descent")
-        f = fit(family, calib, effects, scales=scales, stop=stop, starts=[*starts, st], free=rebase, hold=hold)
+        f = fit(family, calib, effects, scales=scales, stop=stop, starts=[*starts, *grid_starts], free=rebase,
+                hold=hold)
     else:
         if lin_ref is None and points and new:
             raise_if_stopped(stop)
