@@ -639,6 +639,15 @@ def test_a_slow_heat_exchange_is_fitted_from_the_nominal_dead_volumes() -> None:
     assert cost(heat["baseline_params"] | heat["params"]) < 1.1 * cost(true_params(rig, eff))
 
 
+def _calibration_once(rig: PlantParams, seed: int) -> tuple[list[Experiment], RotaryFamily, list, dict[str, float]]:
+    """The protocol run once on ``rig``, split as ``cwrr diagnose`` splits it: its calibration logs, the
+    family, their preparations and channel scales."""
+    calib, _, _ = split_by_coverage(run_protocol(rig, seed=seed, repetitions=1))
+    fam = RotaryFamily()
+    preps = [fam.prepare(e) for e in calib]
+    return calib, fam, preps, channel_scales(fam, preps)
+
+
 def test_the_recalibration_grids_again_with_the_gains_and_friction_it_fitted() -> None:
     """An effect-free rig (seed 211: PRV capacity, DCV capacity and dead volume 0.88 / 1.06 / 0.93 ×
     nominal, pressure gains 1.020 / 1.017), logged once. The recalibration's grid, run with the
@@ -648,10 +657,7 @@ def test_the_recalibration_grids_again_with_the_gains_and_friction_it_fitted() -
     grid again at the fitted gains and friction (docs/diagnosis.md, "The recalibration's second
     grid") finds the valley a descent from the truth ends in."""
     rig = perturbed(211)
-    calib, _, _ = split_by_coverage(run_protocol(rig, seed=211, repetitions=1))
-    fam = RotaryFamily()
-    preps = [fam.prepare(e) for e in calib]
-    scales = channel_scales(fam, preps)
+    _, fam, preps, scales = _calibration_once(rig, 211)
     base = recalibrate(fam, preps, scales)
     from_truth = fit(fam, preps, (), scales=scales, starts=[true_params(rig, None)])
     assert base.rss < 1.1 * from_truth.rss, (base.params, base.rss / from_truth.rss)
@@ -664,10 +670,7 @@ def test_a_valve_shut_at_its_centre_is_recalibrated_not_left_as_gap() -> None:
     sags a full one: on such a rig written apart from ours (bench/independent_rig.py) that had left
     E at 18 × the noise floor. The recalibration takes the valve's centre as it is."""
     rig = STRUCTURAL["dcv_closed_centre"][1](perturbed(212))
-    calib, _, _ = split_by_coverage(run_protocol(rig, seed=212, repetitions=1))
-    fam = RotaryFamily()
-    preps = [fam.prepare(e) for e in calib]
-    scales = channel_scales(fam, preps)
+    calib, fam, preps, scales = _calibration_once(rig, 212)
     base = recalibrate(fam, preps, scales)
     truth = true_params(rig, None)
     assert truth["dcv_centre_closure"] == 1.0 and truth["dcv_dead_band_v"] == pytest.approx(0.2)
@@ -736,10 +739,7 @@ def test_a_prv_regulator_of_another_form_is_recalibrated_where_it_matters() -> N
     dead volumes and the dead zone trade, at 1.8 × the calibration cost of a descent from the
     truth, 0.45 × the nominal form's)."""
     rig = STRUCTURAL["prv_dead_zone"][1](perturbed(213))
-    calib, _, _ = split_by_coverage(run_protocol(rig, seed=213, repetitions=1))
-    fam = RotaryFamily()
-    preps = [fam.prepare(e) for e in calib]
-    scales = channel_scales(fam, preps)
+    _, fam, preps, scales = _calibration_once(rig, 213)
     truth = true_params(rig, None)
     assert truth["prv_hysteresis_scale"] == 0.0 and truth["prv_dead_zone"] == 1.0
     held, base = recalibrate_forms(fam, preps, scales)
@@ -761,10 +761,7 @@ def test_friction_that_does_not_follow_the_pressures_is_recalibrated() -> None:
     i = fr.pw_bar.index(3.0)
     row = {n: (getattr(fr, n)[i],) for n in ("ts_ccw", "tc_ccw", "ws_ccw", "b_ccw", "ts_cw", "tc_cw", "ws_cw", "b_cw")}
     rig = replace(base_rig, friction=replace(fr, pw_bar=(3.0,), **row))
-    calib, _, _ = split_by_coverage(run_protocol(rig, seed=214, repetitions=1))
-    fam = RotaryFamily()
-    preps = [fam.prepare(e) for e in calib]
-    scales = channel_scales(fam, preps)
+    _, fam, preps, scales = _calibration_once(rig, 214)
     base = recalibrate(fam, preps, scales)
     assert base.params["friction_pressure_weight"] < 0.3, base.params
     levels = true_params(base_rig, None)

@@ -1078,6 +1078,7 @@ def recalibrate_forms(family: Family, calib: list[Any], scales: dict[str, float]
     groups = form_groups(family)
     held = [p.name for g in groups for p in g]
     base = nominal_form = _recalibrated(family, calib, nominal, scales, stop, hold=held)
+    at_nominal = {p.name: nominal[p.name] for g in base_groups(family) for p in g}
     for group in groups:
         # The model's form (where a valve starts to open, how its regulator rests) is recalibrated
         # only where that lowers some channel's calibration RMS error by more than what matters on
@@ -1100,7 +1101,6 @@ def recalibrate_forms(family: Family, calib: list[Any], scales: dict[str, float]
         # sit in a valley their grid does not leave. Coordinate grids do not always leave it: on
         # our own rig with a PRV of another form the fit ends at 1.8 × the calibration cost of a
         # descent from the truth (half way to the rig's dead zone), 0.45 × the nominal form's
-        at_nominal = {p.name: nominal[p.name] for g in base_groups(family) for p in g}
         starts: dict[tuple[float, ...], dict[str, float]] = {}
         start, cost = _grid_best(family, calib, (), base.params, group, 3, scales)
         if cost < base.rss:  # some form on the grid fits better

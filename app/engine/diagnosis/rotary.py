@@ -426,10 +426,14 @@ class RotaryFamily:
                 value.
         """
         self._bounds = self.checked_bounds(bounds or {})
-        self.base_grid = tuple(_clipped(p, self._bounds.get(p.name)) for p in type(self).base_grid)
-        self.friction_grid = tuple(_clipped(p, self._bounds.get(p.name)) for p in type(self).friction_grid)
+
+        def clipped(grid: tuple[Param, ...]) -> tuple[Param, ...]:
+            return tuple(_clipped(p, self._bounds.get(p.name)) for p in grid)
+
+        cls = type(self)
+        self.base_grid, self.friction_grid = clipped(cls.base_grid), clipped(cls.friction_grid)
         self.base_grids = (self.base_grid, self.friction_grid)
-        self.form_grids = tuple(tuple(_clipped(p, self._bounds.get(p.name)) for p in g) for g in type(self).form_grids)
+        self.form_grids = tuple(clipped(g) for g in cls.form_grids)
         base = nominal or PlantParams()
         self.nominal = PlantParams(rig="rotary", vane=base.vane, friction=base.friction, prv=base.prv, dcv=base.dcv,
                                    supply=base.supply, sensors=base.sensors, human=HumanParams(0.0, 0.0, 1.0),
