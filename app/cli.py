@@ -399,6 +399,9 @@ def _diagnose(args: argparse.Namespace) -> int:
             parts.append(f"{w['channel']} {w['rms']:.3g} (floor {w['floor']:.3g}"
                          + (f"; {100 * top[1]['share']:.0f} % in {top[0]})" if top else ")"))
         print("  baseline RMS: " + ", ".join(parts))
+        recal = r["baseline"].get("recalibration") or {}
+        if recal.get("note"):
+            print(f"  recalibration: {recal['note']}")
         for title, rows in (("each candidate against the baseline (GC, its 90 % CI, ΔBIC):", r["ranking"]),
                             ("added one by one, each against the model with those above it:",
                              r.get("combination", []))):

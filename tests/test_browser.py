@@ -508,6 +508,9 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#detail")).to_contain_text("Held out: hold_closed-2")
     # each channel's RMS beside the floor the bars are read against, not the bare sensor noise
     expect(page.locator("#where tr").first).to_contain_text("noise floor")
+    # what the recalibration made of each nominal value, in the engine's words
+    expect(page.locator("#recal")).to_contain_text("chamber dead volumes × nominal")
+    expect(page.locator("#recal tr")).to_have_count(14)  # a header and the rotary rig's 13 parameters
     page.screenshot(path=str(SHOTS / "6-gap-diagnosis.png"), full_page=True)
     # the person typed on the page went with the protocol's run and its experiments' runs
     with urllib.request.urlopen(base + "/api/runs?kind=diagnosis_protocol&limit=1", timeout=10) as r:
@@ -521,6 +524,10 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
         rep = json.loads(urllib.request.urlopen(f"{base}/api/runs/{json.loads(r.read())[0]['id']}",
                                                 timeout=10).read())["result"]
     assert rep["alternatives"] == [] or rep["verdict"]["effects"] == ["sensor_bias"], rep["verdict"]
+    far = rep["baseline"]["recalibration"]["far"]
+    expect(page.locator("#recal tr.far")).to_have_count(len(far))
+    expect(page.locator("#recal-note")).to_contain_text(
+        "The recalibration moved" if far else "No nominal value moved further than a tolerance explains")
     # a closed hold never moves the handle at speed: inertia is said to be not ruled out, not absent
     assert "inertia" in rep["verdict"]["untested"], rep["experiments"]["unshown"]
     expect(page.locator("#detail")).to_contain_text("Not ruled out, since no held-out log shows them: ")

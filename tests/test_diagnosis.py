@@ -6,7 +6,7 @@ import json
 import math
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pytest
@@ -847,3 +847,66 @@ def test_a_dynamic_effect_whose_gain_stays_without_its_dynamics_is_credited_to_i
     if tau == 0.0:
         assert c["not_significant_because"][-1].startswith("its gain stays with the lag taken out (GC 0.")
         assert r["verdict"]["effects"] == []
+
+
+class _ScaledFamily:
+    """Just enough of a family for :func:`core.recalibration`: two nominal scales, one form parameter."""
+
+    nominal_scales = ("volume_scale", "flow_scale")
+    meaning: ClassVar[dict[str, str]] = {"volume_scale": "dead volume × nominal",
+                                         "flow_scale": "flow capacity × nominal"}
+    absorbs: ClassVar[dict[str, str]] = {"volume_scale": "a tube's volume", "flow_scale": "a restriction"}
+
+    def baseline(self) -> list[Param]:
+        return [Param("volume_scale", 1.0, 0.2, 5.0, "-", log=True), Param("flow_scale", 1.0, 0.3, 3.0, "-", log=True),
+                Param("closure", 0.0, 0.0, 1.0, "-")]
+
+    def effect(self, name: str) -> list[Param]:
+        return [Param("tube.length", 1.0, 0.0, 10.0, "m", off=0.0)]
+
+
+def _fit_at(params: dict[str, float], at_bound: tuple[str, ...] = ()) -> core.Fit:
+    return core.Fit((), params, dict.fromkeys(params, 0.01), list(at_bound), np.eye(len(params)), 1.0, 1.0, 100,
+                    len(params))
+
+
+@pytest.mark.parametrize(("volume", "flow", "far"), [
+    (1.9, 0.6, []),  # within a factor of 2 either way: a tolerance, nothing said
+    (2.2, 1.0, ["volume_scale"]),
+    (1.0, 0.45, ["flow_scale"]),
+    (4.99, 0.33, ["volume_scale", "flow_scale"]),  # the first on the end of its range as well
+])
+def test_the_report_says_which_nominal_values_the_recalibration_moved_past_a_tolerance(
+        volume: float, flow: float, far: list[str]) -> None:
+    # a form parameter on an end of its range is a form, not a scale: listed, never flagged
+    r = core.recalibration(_ScaledFamily(), _fit_at({"volume_scale": volume, "flow_scale": flow, "closure": 1.0}))
+    assert r["far"] == far
+    rows = {p["name"]: p for p in r["params"]}
+    assert rows["closure"]["at_bound"] and not rows["closure"]["far"]
+    assert rows["volume_scale"]["at_bound"] == (volume == 4.99)
+    assert rows["volume_scale"]["nominal"] == 1.0 and rows["volume_scale"]["range"] == [0.2, 5.0]
+    if not far:
+        assert r["note"] is None
+        return
+    assert r["note"] is not None
+    for name in far:
+        assert _ScaledFamily.meaning[name] in r["note"] and _ScaledFamily.absorbs[name] in r["note"]
+    assert "No effect in the verdict accounts for it" in r["note"]
+    assert ("on the end of its range 0.2 … 5" in r["note"]) == (volume == 4.99)
+
+
+def test_the_report_says_when_the_verdicts_effect_gives_a_far_value_back() -> None:
+    base = _fit_at({"volume_scale": 4.8, "flow_scale": 1.0, "closure": 0.0})
+    with_tube = _fit_at({"volume_scale": 1.3, "flow_scale": 1.0, "closure": 0.0, "tube.length": 5.0})
+    scores = core.Scores(np.zeros((1, 1)), np.zeros((1, 1)))
+    tube = core.Candidate("tube", with_tube, scores, 0.8, (0.7, 0.9), 50.0, {}, {}, True, True)
+    r = core.recalibration(_ScaledFamily(), base, tube)
+    assert r["far"] == ["volume_scale"]
+    assert "With tube in the model volume_scale comes back to 1.3" in r["note"]
+    assert "accounts for" not in r["note"] and "does not account" not in r["note"]
+    assert {p["name"]: p["in_model"] for p in r["params"]}["volume_scale"] == 1.3
+    # an effect whose fit leaves the value where it was does not account for it
+    still = core.Candidate("inertia", _fit_at(base.params | {"tube.length": 0.0}), scores, 0.3, (0.1, 0.5), 20.0,
+                           {}, {}, True, True)
+    assert "What the verdict names does not account for it: it may be a tube's volume" in \
+        core.recalibration(_ScaledFamily(), base, still)["note"]

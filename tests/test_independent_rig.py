@@ -152,3 +152,8 @@ def test_a_tube_behind_a_valve_of_another_form_is_fitted_beside_that_form(tmp_pa
     assert tube["params"]["tube_dynamics.length"] == pytest.approx(5.0, rel=0.3), tube["params"]
     assert tube["baseline_params"]["dead_volume_scale"] < 2.0, tube["baseline_params"]
     assert tube["significant"] and r["verdict"]["effects"] == ["tube_dynamics"], r["verdict"]
+    # and the report says the recalibration had moved the dead volume past any tolerance, and that
+    # the verdict's tube gives it back
+    recal = r["baseline"]["recalibration"]
+    assert "dead_volume_scale" in recal["far"], recal["far"]
+    assert "With tube_dynamics in the model" in recal["note"] and "dead_volume_scale comes back to" in recal["note"]

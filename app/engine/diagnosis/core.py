@@ -65,6 +65,11 @@ dynamics out and their description (see :data:`STATIC_SHARE`),
 candidate's descent with the parameters that enter the predictions (nearly)
 linearly at their least-squares values (or ``None``: the grid; with ``rebase``,
 taken again at the baseline grid's best), and
+``nominal_scales`` naming baseline parameters that scale a nominal value
+(the report flags one the recalibration moved past :data:`FAR_FACTOR`:
+:func:`recalibration`), ``meaning`` (what each baseline parameter is, for
+that report) and ``absorbs`` (per such parameter, what an unmodelled effect
+it can stand in for looks like there), and
 ``shared_scale``: groups of channels of one quantity normalised by one
 scale, the largest of their SDs (a regulated supply's own SD is its noise:
 normalised by it, its NRMSE is ≈ 1 whatever the model, and the ±1–2 %
@@ -93,6 +98,11 @@ BIC_STRONG = 10.0  # Kass & Raftery (1995): ΔBIC > 10 is very strong evidence
 GC_MIN = 0.2
 N_BOOT = 300
 MAX_EFFECTS = 3
+# A nominal value the recalibration moved by more than this factor either way is off by more than
+# any tolerance on a datasheet or a drawing: the fit is standing in for something the model lacks
+# (on a rig written apart from ours, bench/independent_rig.py, a 5 m tube behind each valve was
+# taken as 5.0 × the dead volumes, at the range's end, beside 0.33 × the PRV capacity)
+FAR_FACTOR = 2.0
 
 
 @dataclass(frozen=True)
@@ -1035,6 +1045,69 @@ def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap:
     return out + beatable
 
 
+def recalibration(family: Family, base: Fit, model: Candidate | None = None) -> dict[str, Any]:
+    """What the recalibration made of each baseline parameter, and which it moved further than a tolerance.
+
+    A nominal value scaled by the family's ``nominal_scales`` to more than
+    :data:`FAR_FACTOR` × or less than 1 / :data:`FAR_FACTOR` × its nominal,
+    or onto an end of its range away from nominal, is *far*: no tolerance
+    explains it, so the baseline is absorbing something (an effect the
+    model lacks, or a nominal value that is wrong).
+
+    Args:
+        family: The family diagnosed (its ``baseline()`` ranges are the ones fitted in).
+        base: The baseline every candidate was judged against.
+        model: The last effect the verdict keeps (its fit refits the
+            baseline's values beside the effect), or ``None``.
+
+    Returns:
+        ``params``: per baseline parameter its ``value``, ``nominal``,
+        ``range``, ``sd``, ``at_bound`` (on an end of its range, away from
+        nominal), ``far`` and ``in_model`` (its value in ``model``'s fit, or
+        ``None``); ``far``: the far ones' names; ``note``: a sentence on them
+        (``None`` when none is far).
+    """
+    scaled = set(getattr(family, "nominal_scales", ()))
+    meaning: dict[str, str] = getattr(family, "meaning", {})
+    absorbs: dict[str, str] = getattr(family, "absorbs", {})
+    rows: list[dict[str, Any]] = []
+    far: list[str] = []
+    for p in _specs(family, ()):
+        v = base.params[p.name]
+        moved = abs(v - p.x0) > 1e-9 * max(1.0, abs(p.x0))
+        # within 0.5 % of an end: a descent on a rippled cost stops short of the bound it presses on
+        on_end = moved and (abs(v - p.lo) <= 5e-3 * max(1.0, abs(p.lo)) or abs(v - p.hi) <= 5e-3 * max(1.0, abs(p.hi)))
+        beyond = p.name in scaled and p.x0 > 0.0 and not p.x0 / FAR_FACTOR <= v <= p.x0 * FAR_FACTOR
+        is_far = p.name in scaled and (beyond or on_end)
+        if is_far:
+            far.append(p.name)
+        rows.append({"name": p.name, "meaning": meaning.get(p.name, ""), "value": v, "nominal": p.x0,
+                     "range": [p.lo, p.hi], "unit": p.unit, "sd": base.sd.get(p.name, math.nan), "at_bound": on_end,
+                     "far": is_far, "in_model": model.fit.params.get(p.name) if model is not None else None})
+    note = None
+    if far:
+        by = {r["name"]: r for r in rows}
+        what = "; ".join(
+            f"{by[n]['meaning'] or n}: {by[n]['value']:.3g} (nominal {by[n]['nominal']:g}"
+            + (f", on the end of its range {by[n]['range'][0]:g} … {by[n]['range'][1]:g}" if by[n]["at_bound"] else "")
+            + ")" for n in far)
+        note = (f"the recalibration moved {what}; that is more than a tolerance on a nominal value explains "
+                f"(over {FAR_FACTOR:g} × or under 1/{FAR_FACTOR:g} ×), so the baseline is standing in for something")
+        back = [n for n in far if (m := by[n]["in_model"]) is not None
+                and by[n]["nominal"] / FAR_FACTOR <= m <= by[n]["nominal"] * FAR_FACTOR]
+        if model is not None and back:
+            note += (f". With {model.effect} in the model " + ", ".join(f"{n} comes back to {by[n]['in_model']:.3g}"
+                                                                      for n in back))
+        if len(back) < len(far):
+            hints = [absorbs[n] for n in far if n not in back and n in absorbs]
+            note += (". What the verdict names does not account for it" if model is not None else
+                     ". No effect in the verdict accounts for it")
+            note += (f": it may be {'; or '.join(hints)}" if hints else "")
+            note += ("; where the quantity was measured, narrowing its range (cwrr diagnose --bound NAME=LO:HI, "
+                     "or the diagnosis page's ranges) keeps the baseline from absorbing it")
+    return {"params": rows, "far": far, "note": note}
+
+
 def _rank_key(c: Candidate) -> tuple[bool, bool, float]:
     """Significant first; then an effect whose own parameters sit inside their physical
     bounds before one pinned on a bound (pinned, it is mimicking a shape it cannot make);
@@ -1367,6 +1440,8 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                         "unscored_channels": unscored},
         "baseline": {"nrmse": dict(zip(chans, map(float, nr_base), strict=True)), "e": e_base,
                      "identifiability": base.identifiability(), "gap": gap,
+                     # what the recalibration made of each nominal value, and which it moved past a tolerance
+                     "recalibration": recalibration(family, base, selected[-1] if selected else None),
                      # the form the recalibration found beside the nominal one, and whether it was kept
                      "form": form},
         "noise_floor": {"nrmse": dict(zip(chans, map(float, floor / spread), strict=True)), "e": e_floor},

@@ -53,7 +53,7 @@ from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numba import njit
@@ -366,6 +366,23 @@ class RotaryFamily:
     channels: tuple[str, ...] = ("p_a", "p_b", "p_s", "torque")
     shared_scale: tuple[tuple[str, ...], ...] = (("p_a", "p_b", "p_s"),)  # see core: one pressure scale
     candidates: tuple[str, ...] = EFFECT_NAMES
+    # for the report's recalibration table (core.recalibration): the parameters that scale a nominal
+    # value, what each is, and what an effect standing in for it there looks like
+    nominal_scales: tuple[str, ...] = (*_PNEUMATIC_BASE, "gain_a", "gain_b", "friction_scale", "viscous_scale")
+    meaning: ClassVar[dict[str, str]] = BASELINE_MEANING
+    absorbs: ClassVar[dict[str, str]] = {
+        "prv_c_scale": "a restriction or a lag between the supply and the chambers (tube_dynamics, "
+                       "valve_dynamics, supply_droop)",
+        "dcv_c_scale": "a restriction between a valve and its chamber (tube_dynamics) or a leak (vane_leakage, "
+                       "external_leakage)",
+        "dead_volume_scale": "a volume behind a valve the model lacks (a long tube: tube_dynamics) or the gas's "
+                             "heat exchange with the walls (heat_transfer)",
+        "gain_a": "an offset of pressure sensor a (sensor_bias)",
+        "gain_b": "an offset of pressure sensor b (sensor_bias)",
+        "friction_scale": "torque the model lacks (inertia, presliding_friction, the torque sensor's offset: "
+                          "sensor_bias)",
+        "viscous_scale": "torque that grows with speed or acceleration (inertia)",
+    }
 
     diff_step: float = 1e-2  # see core.fit: the replay is piecewise smooth
     max_nfev: int = 30
