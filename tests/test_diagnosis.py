@@ -902,7 +902,7 @@ def test_the_report_says_when_the_verdicts_effect_gives_a_far_value_back() -> No
     tube = core.Candidate("tube", with_tube, scores, 0.8, (0.7, 0.9), 50.0, {}, {}, True, True)
     r = core.recalibration(_ScaledFamily(), base, tube)
     assert r["far"] == ["volume_scale"]
-    assert "With tube in the model volume_scale comes back to 1.3" in r["note"]
+    assert "With tube in the model, dead volume × nominal comes back to 1.3" in r["note"]
     assert "accounts for" not in r["note"] and "does not account" not in r["note"]
     assert {p["name"]: p["in_model"] for p in r["params"]}["volume_scale"] == 1.3
     # an effect whose fit leaves the value where it was does not account for it

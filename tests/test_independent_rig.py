@@ -156,4 +156,5 @@ def test_a_tube_behind_a_valve_of_another_form_is_fitted_beside_that_form(tmp_pa
     # the verdict's tube gives it back
     recal = r["baseline"]["recalibration"]
     assert "dead_volume_scale" in recal["far"], recal["far"]
-    assert "With tube_dynamics in the model" in recal["note"] and "dead_volume_scale comes back to" in recal["note"]
+    assert "With tube_dynamics in the model, " in recal["note"]
+    assert "chamber dead volumes × nominal comes back to" in recal["note"], recal["note"]

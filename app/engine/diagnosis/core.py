@@ -1096,8 +1096,8 @@ def recalibration(family: Family, base: Fit, model: Candidate | None = None) -> 
         back = [n for n in far if (m := by[n]["in_model"]) is not None
                 and by[n]["nominal"] / FAR_FACTOR <= m <= by[n]["nominal"] * FAR_FACTOR]
         if model is not None and back:
-            note += (f". With {model.effect} in the model " + ", ".join(f"{n} comes back to {by[n]['in_model']:.3g}"
-                                                                      for n in back))
+            note += (f". With {model.effect} in the model, " + "; ".join(
+                f"{by[n]['meaning'] or n} comes back to {by[n]['in_model']:.3g}" for n in back))
         if len(back) < len(far):
             hints = [absorbs[n] for n in far if n not in back and n in absorbs]
             note += (". What the verdict names does not account for it" if model is not None else
