@@ -910,3 +910,29 @@ def test_the_report_says_when_the_verdicts_effect_gives_a_far_value_back() -> No
                            {}, {}, True, True)
     assert "What the verdict names does not account for it: it may be a tube's volume" in \
         core.recalibration(_ScaledFamily(), base, still)["note"]
+
+
+class _ScaledLine(_Line):
+    """y = a·x with a a scale of a nominal 1 (a gain whose datasheet value is 1)."""
+
+    nominal_scales = ("a",)
+    meaning: ClassVar[dict[str, str]] = {"a": "the line's gain × nominal"}
+    absorbs: ClassVar[dict[str, str]] = {"a": "a second sensor in series"}
+
+
+@pytest.mark.parametrize("gain", [1.5, 3.0])
+def test_a_baseline_standing_in_for_something_is_said_on_the_verdicts_line(gain: float) -> None:
+    rng = np.random.default_rng(4)
+    x = np.linspace(0.0, 1.0, 400)
+    exps = [Experiment(n, x, {"x": x}, {"y": gain * x + 0.01 * rng.standard_normal(x.size)}, {}) for n in "abcd"]
+    r = core.diagnose(_ScaledLine(), exps[:2], exps[2:], blocks=4)
+    recal = r["baseline"]["recalibration"]
+    assert recal["params"][0]["value"] == pytest.approx(gain, rel=0.01)
+    far = gain > core.FAR_FACTOR
+    assert recal["unaccounted"] == (["a"] if far else [])
+    said = "the recalibration moved the line's gain × nominal past 2 × or the end of its range" in \
+        r["verdict"]["summary"]
+    assert said is far, r["verdict"]["summary"]
+    assert (recal["note"] is not None) is far
+    if far:
+        assert "a second sensor in series" in recal["note"]

@@ -1064,8 +1064,9 @@ def recalibration(family: Family, base: Fit, model: Candidate | None = None) -> 
         ``params``: per baseline parameter its ``value``, ``nominal``,
         ``range``, ``sd``, ``at_bound`` (on an end of its range, away from
         nominal), ``far`` and ``in_model`` (its value in ``model``'s fit, or
-        ``None``); ``far``: the far ones' names; ``note``: a sentence on them
-        (``None`` when none is far).
+        ``None``); ``far``: the far ones' names; ``unaccounted``: those
+        ``model`` does not bring back within the factor; ``note``: a
+        sentence on them (``None`` when none is far).
     """
     scaled = set(getattr(family, "nominal_scales", ()))
     meaning: dict[str, str] = getattr(family, "meaning", {})
@@ -1085,6 +1086,7 @@ def recalibration(family: Family, base: Fit, model: Candidate | None = None) -> 
                      "range": [p.lo, p.hi], "unit": p.unit, "sd": base.sd.get(p.name, math.nan), "at_bound": on_end,
                      "far": is_far, "in_model": model.fit.params.get(p.name) if model is not None else None})
     note = None
+    back: list[str] = []
     if far:
         by = {r["name"]: r for r in rows}
         what = "; ".join(
@@ -1105,7 +1107,7 @@ def recalibration(family: Family, base: Fit, model: Candidate | None = None) -> 
             note += (f": it may be {'; or '.join(hints)}" if hints else "")
             note += ("; where the quantity was measured, narrowing its range (cwrr diagnose --bound NAME=LO:HI, "
                      "or the diagnosis page's ranges) keeps the baseline from absorbing it")
-    return {"params": rows, "far": far, "note": note}
+    return {"params": rows, "far": far, "note": note, "unaccounted": [n for n in far if n not in back]}
 
 
 def _rank_key(c: Candidate) -> tuple[bool, bool, float]:
@@ -1423,6 +1425,15 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         ref_sc = kept[-1].scores if kept else base_sc
     selected = kept
     e_final, nr_final = _e(ref_sc, norm)
+    recal = recalibration(family, base, selected[-1] if selected else None)
+    summary = _summary(selected, alternatives, gap, beaten)
+    if recal["unaccounted"]:
+        # said on the verdict's line too: "no significant effect" with a baseline standing in for
+        # something is not the same answer as with one that is not
+        meanings = getattr(family, "meaning", {})
+        summary += ("; the recalibration moved " + ", ".join(meanings.get(n, n) for n in recal["unaccounted"])
+                    + f" past {FAR_FACTOR:g} × or the end of its range, which nothing in the verdict accounts for: "
+                    "the baseline is standing in for something (baseline.recalibration)")
     chans = list(family.channels)
     return {
         "family": family.name,
@@ -1441,7 +1452,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         "baseline": {"nrmse": dict(zip(chans, map(float, nr_base), strict=True)), "e": e_base,
                      "identifiability": base.identifiability(), "gap": gap,
                      # what the recalibration made of each nominal value, and which it moved past a tolerance
-                     "recalibration": recalibration(family, base, selected[-1] if selected else None),
+                     "recalibration": recal,
                      # the form the recalibration found beside the nominal one, and whether it was kept
                      "form": form},
         "noise_floor": {"nrmse": dict(zip(chans, map(float, floor / spread), strict=True)), "e": e_floor},
@@ -1457,7 +1468,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                     "alternatives": [a["explanation"] for a in alternatives
                                      if a["confusable"] or a["better"] or a["also"]],
                     "baseline_beaten": beaten,
-                    "summary": _summary(selected, alternatives, gap, beaten)},
+                    "summary": summary},
         "how_far": {"before": dict(zip(chans, map(float, nr_base), strict=True)),
                     "after": dict(zip(chans, map(float, nr_final), strict=True)),
                     "model": model, "e_before": e_base, "e_after": e_final, "e_floor": e_floor,
