@@ -370,6 +370,7 @@ def _modbus_plant(args: argparse.Namespace) -> int:
 def _diagnose(args: argparse.Namespace) -> int:
     """Diagnose the logs in ``args.logdir`` and print the verdict (issue 6)."""
     from app.engine.diagnosis.run import diagnose_dir
+    from app.storage import strict_json
 
     bounds = {}
     for text in args.bound:
@@ -383,7 +384,8 @@ def _diagnose(args: argparse.Namespace) -> int:
             raise ValueError(f"--bound {text!r}: expected NAME=LO:HI, e.g. dead_volume_scale=0.9:1.1") from None
     report = diagnose_dir(args.logdir, adapter=args.adapter, held_out=args.held_out, bounds=bounds)
     if args.json_out:
-        Path(args.json_out).write_text(json.dumps(report, indent=1))
+        # strict JSON (a held parameter's SD is NaN): the report is read by other tools
+        Path(args.json_out).write_text(strict_json(report, indent=1))
     for name, r in (report["reports"].items() if "reports" in report else [("", report)]):
         v = r["verdict"]
         print(f"{name + ': ' if name else ''}{v['summary']}"

@@ -26,6 +26,16 @@ from typing import Any
 
 def _dumps(obj: Any) -> str:
     """JSON with non-finite numbers as null: strict JSON readers (the API, browsers) reject NaN."""
+    return strict_json(obj)
+
+
+def strict_json(obj: Any, indent: int | None = None) -> str:
+    """``obj`` as strict JSON: NaN and ±inf (an SD a fit could not give, say) become null.
+
+    Python's own ``json.dumps`` writes them as the bare tokens ``NaN`` and
+    ``Infinity``, which JavaScript's ``JSON.parse``, ``jq`` and most other
+    readers refuse.
+    """
 
     def clean(o: Any) -> Any:
         if isinstance(o, float):
@@ -38,7 +48,7 @@ def _dumps(obj: Any) -> str:
             return clean(o.tolist())
         return o
 
-    return json.dumps(clean(obj), allow_nan=False)
+    return json.dumps(clean(obj), allow_nan=False, indent=indent)
 
 
 _TABLES = """

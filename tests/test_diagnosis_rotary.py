@@ -519,7 +519,13 @@ def test_withheld_sensor_bias_through_the_cli(tmp_path: Path, capsys: pytest.Cap
     assert len(list(logs.glob("*.csv"))) == 2 * len(VISIBLE)
     out = tmp_path / "report.json"
     assert main(["diagnose", str(logs), "--json", str(out)]) == 0
-    r = json.loads(out.read_text())
+
+    def no_bare_tokens(token: str) -> float:
+        raise AssertionError(f"{token} in a report strict JSON readers must parse")
+
+    # strict JSON: the form parameters the recalibration held have no SD, and Python's json would
+    # write those as the bare token NaN, which JSON.parse and jq refuse
+    r = json.loads(out.read_text(), parse_constant=no_bare_tokens)
     assert set(r["baseline"]["nrmse"]) == {"p_a", "p_b", "p_s", "torque"}
     assert r["verdict"]["effects"][:1] == ["sensor_bias"], r["verdict"]
     top = r["ranking"][0]

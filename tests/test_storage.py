@@ -160,3 +160,16 @@ def test_the_radar_compares_a_run_with_like_runs_only(url: str) -> None:
     assert got == {"fuzzy": {"mae": 0.10}, "default": {"mae": 0.30}, "pid": {"mae": 0.20}}
     assert latest_per_controller(store, run("pid", "", 0.5)) == {"pid": {"mae": 0.5}}  # nobody named: no one else
     assert latest_per_controller(store, 999) == {}
+
+
+def test_strict_json_writes_what_a_fit_could_not_give_as_null() -> None:
+    import json
+
+    import numpy as np
+
+    from app.storage import strict_json
+
+    text = strict_json({"sd": {"a": float("nan"), "b": np.float64(np.inf)}, "v": [1.5, -np.inf]}, indent=1)
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text) == {"sd": {"a": None, "b": None}, "v": [1.5, None]}
+    assert text.startswith("{\n ")  # indented as asked
