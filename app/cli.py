@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import signal
@@ -14,6 +13,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from app.storage import strict_json
 
 
 def _sim(args: argparse.Namespace) -> int:
@@ -54,7 +55,7 @@ def _sim(args: argparse.Namespace) -> int:
         w.close()
         summary["log"] = str(w.csv_path)
     if args.json:
-        print(json.dumps(summary))
+        print(strict_json(summary))
     else:
         for k_, v in summary.items():
             print(f"{k_:28s} {v}")
@@ -73,14 +74,14 @@ def _bench(args: argparse.Namespace) -> int:
             raise ValueError("bench thesis needs --out DIR (where results.json and the charts go)")
         records = run_thesis_bench(Path(args.out), seed=args.seed, plots=not args.no_plots)
         if args.json:
-            print(json.dumps(records))
+            print(strict_json(records))
         else:
             print((Path(args.out) / "results.md").read_text())
         return 0
     if not (0.0 < args.duration <= 3600.0):
         raise ValueError(f"--duration {args.duration} is outside its allowed range (0, 3600] s")
     res = perf(duration=args.duration)
-    print(json.dumps(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
+    print(strict_json(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
     return 0
 
 
@@ -113,10 +114,10 @@ def _identify(args: argparse.Namespace) -> int:
         if args.out:
             d = Path(args.out)
             d.mkdir(parents=True, exist_ok=True)
-            (d / "seal_friction.json").write_text(json.dumps(result, indent=1))
+            (d / "seal_friction.json").write_text(strict_json(result, indent=1))
             if not args.no_plots:
                 seal_plot(result, d / "seal_friction.png")
-        print(json.dumps(result) if args.json else json.dumps(result["seals"], indent=1))
+        print(strict_json(result) if args.json else strict_json(result["seals"], indent=1))
         return 0
     if args.rig == "dcv":
         return _identify_dcv(args)
@@ -130,7 +131,7 @@ def _identify(args: argparse.Namespace) -> int:
         table = load_table(args.table) if args.table else None
         res = {k: v for k, v in closed_loop_validation(args.target, args.pw, table, args.seed).items()
                if k not in ("t", "torque", "moving")}
-        print(json.dumps(res, indent=None if args.json else 1))
+        print(strict_json(res, indent=None if args.json else 1))
         return 0
     if args.ns < 30 or args.nd < 30:
         raise ParameterError(f"{'ns' if args.ns < 30 else 'nd'}: {MSG_N}")
@@ -180,22 +181,22 @@ def _identify(args: argparse.Namespace) -> int:
 
             d = Path(args.out)
             d.mkdir(parents=True, exist_ok=True)
-            (d / "sweep.json").write_text(json.dumps(detail, indent=1, default=float))
+            (d / "sweep.json").write_text(strict_json(detail, indent=1, default=float))
             if not args.no_plots:
                 friction_surface_plot(sw.to_table(), d / "friction_surface.png")
         print(f"sweep: {detail['timing']['rig_seconds']:.0f} s of rig time simulated in {wall:.1f} s",
               file=sys.stderr)
         if args.json:
-            print(json.dumps(out))
+            print(strict_json(out))
         else:
-            print(json.dumps(detail, indent=1, default=float))
+            print(strict_json(detail, indent=1, default=float))
         return 0
     if args.out:
         from pathlib import Path
 
         d = Path(args.out)
         d.mkdir(parents=True, exist_ok=True)
-        (d / "result.json").write_text(json.dumps({"contract": out, "detail": detail,
+        (d / "result.json").write_text(strict_json({"contract": out, "detail": detail,
                                                    "data": run.procedure.data.as_dict(),
                                                    "sim_seconds": run.summary.sim_seconds,
                                                    "wall_seconds": run.summary.wall_seconds}, default=float))
@@ -204,9 +205,9 @@ def _identify(args: argparse.Namespace) -> int:
 
             friction_curve_plot(run.procedure.data, res, d / "friction_curve.png")
     if args.json:
-        print(json.dumps(out))
+        print(strict_json(out))
     else:
-        print(json.dumps(detail, indent=1, default=float))
+        print(strict_json(detail, indent=1, default=float))
         print(f"rig time {run.summary.sim_seconds:.0f} s, computed in {run.summary.wall_seconds:.1f} s",
               file=sys.stderr)
     return 0
@@ -240,7 +241,7 @@ def _identify_dcv(args: argparse.Namespace) -> int:
     if args.out:
         d = Path(args.out)
         d.mkdir(parents=True, exist_ok=True)
-        (d / "dcv.json").write_text(json.dumps(summary | {"cpr_tests": run.procedure.data.as_dict()["tests"]},
+        (d / "dcv.json").write_text(strict_json(summary | {"cpr_tests": run.procedure.data.as_dict()["tests"]},
                                                indent=1, default=float))
         if not args.no_plots:
             from app.engine.ident.plots import cpr_plot, flow_fit_plot, validation_plot
@@ -250,9 +251,9 @@ def _identify_dcv(args: argparse.Namespace) -> int:
             validation_plot(cases[:n_thesis], d / "validation_thesis.png")
             validation_plot(cases[n_thesis:], d / "validation_held_out.png")
     if args.json:
-        print(json.dumps(summary, default=float))
+        print(strict_json(summary, default=float))
     else:
-        print(json.dumps(summary["validation"]["mean_mape_pct"], indent=1))
+        print(strict_json(summary["validation"]["mean_mape_pct"], indent=1))
         print(f"rig time {summary['timing']['rig_seconds']:.0f} s, computed in "
               f"{summary['timing']['wall_seconds']:.1f} s", file=sys.stderr)
     return 0
@@ -280,12 +281,12 @@ def _identify_pid(args: argparse.Namespace) -> int:
     if args.out:
         d = Path(args.out)
         d.mkdir(parents=True, exist_ok=True)
-        (d / f"pid_{args.side}.json").write_text(json.dumps(out, indent=1, default=float))
+        (d / f"pid_{args.side}.json").write_text(strict_json(out, indent=1, default=float))
         if not args.no_plots:
             from app.engine.ident.plots import autotune_plot
 
             autotune_plot(r, d / f"pid_{args.side}.png")
-    print(json.dumps(out, default=float) if args.json else json.dumps(out["tuned"], indent=1, default=float))
+    print(strict_json(out, default=float) if args.json else strict_json(out["tuned"], indent=1, default=float))
     return 0
 
 
@@ -370,7 +371,6 @@ def _modbus_plant(args: argparse.Namespace) -> int:
 def _diagnose(args: argparse.Namespace) -> int:
     """Diagnose the logs in ``args.logdir`` and print the verdict (issue 6)."""
     from app.engine.diagnosis.run import diagnose_dir
-    from app.storage import strict_json
 
     bounds = {}
     for text in args.bound:

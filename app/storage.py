@@ -20,6 +20,7 @@ import math
 import sqlite3
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -29,12 +30,13 @@ def _dumps(obj: Any) -> str:
     return strict_json(obj)
 
 
-def strict_json(obj: Any, indent: int | None = None) -> str:
+def strict_json(obj: Any, indent: int | None = None, default: Callable[[Any], Any] | None = None) -> str:
     """``obj`` as strict JSON: NaN and ±inf (an SD a fit could not give, say) become null.
 
     Python's own ``json.dumps`` writes them as the bare tokens ``NaN`` and
     ``Infinity``, which JavaScript's ``JSON.parse``, ``jq`` and most other
-    readers refuse.
+    readers refuse. ``default`` converts what JSON has no type for (as
+    ``json.dumps``'s does), and its result is cleaned the same way.
     """
 
     def clean(o: Any) -> Any:
@@ -46,6 +48,8 @@ def strict_json(obj: Any, indent: int | None = None) -> str:
             return [clean(v) for v in o]
         if hasattr(o, "tolist"):  # numpy scalars and arrays
             return clean(o.tolist())
+        if default is not None and not isinstance(o, str | int | bool | type(None)):
+            return clean(default(o))
         return o
 
     return json.dumps(clean(obj), allow_nan=False, indent=indent)

@@ -173,3 +173,9 @@ def test_strict_json_writes_what_a_fit_could_not_give_as_null() -> None:
     assert "NaN" not in text and "Infinity" not in text
     assert json.loads(text) == {"sd": {"a": None, "b": None}, "v": [1.5, None]}
     assert text.startswith("{\n ")  # indented as asked
+    # what JSON has no type for goes through ``default``, and what that gives is cleaned too
+    from decimal import Decimal
+
+    assert strict_json({"x": Decimal("NaN"), "y": Decimal("0.5")}, default=float) == '{"x": null, "y": 0.5}'
+    with pytest.raises(TypeError):
+        strict_json({"x": Decimal("0.5")})
