@@ -197,9 +197,9 @@ def _identify(args: argparse.Namespace) -> int:
         d = Path(args.out)
         d.mkdir(parents=True, exist_ok=True)
         (d / "result.json").write_text(strict_json({"contract": out, "detail": detail,
-                                                   "data": run.procedure.data.as_dict(),
-                                                   "sim_seconds": run.summary.sim_seconds,
-                                                   "wall_seconds": run.summary.wall_seconds}, default=float))
+                                                    "data": run.procedure.data.as_dict(),
+                                                    "sim_seconds": run.summary.sim_seconds,
+                                                    "wall_seconds": run.summary.wall_seconds}, default=float))
         if not args.no_plots:
             from app.engine.ident.plots import friction_curve_plot
 
@@ -242,7 +242,7 @@ def _identify_dcv(args: argparse.Namespace) -> int:
         d = Path(args.out)
         d.mkdir(parents=True, exist_ok=True)
         (d / "dcv.json").write_text(strict_json(summary | {"cpr_tests": run.procedure.data.as_dict()["tests"]},
-                                               indent=1, default=float))
+                                                indent=1, default=float))
         if not args.no_plots:
             from app.engine.ident.plots import cpr_plot, flow_fit_plot, validation_plot
 

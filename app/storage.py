@@ -25,17 +25,12 @@ from pathlib import Path
 from typing import Any
 
 
-def _dumps(obj: Any) -> str:
-    """JSON with non-finite numbers as null: strict JSON readers (the API, browsers) reject NaN."""
-    return strict_json(obj)
-
-
 def strict_json(obj: Any, indent: int | None = None, default: Callable[[Any], Any] | None = None) -> str:
     """``obj`` as strict JSON: NaN and ±inf (an SD a fit could not give, say) become null.
 
     Python's own ``json.dumps`` writes them as the bare tokens ``NaN`` and
     ``Infinity``, which JavaScript's ``JSON.parse``, ``jq`` and most other
-    readers refuse. ``default`` converts what JSON has no type for (as
+    readers refuse (the API's and the browsers' among them). ``default`` converts what JSON has no type for (as
     ``json.dumps``'s does), and its result is cleaned the same way.
     """
 
@@ -198,15 +193,15 @@ class Store:
         return self._insert(
             "INSERT INTO runs(kind, status, started, spec, log_csv, person, notes, session_id) "
             "VALUES (?,?,?,?,?,?,?,?)",
-            (kind, "running", time.time(), _dumps(spec), log_csv, str(spec.get("person", "")),
+            (kind, "running", time.time(), strict_json(spec), log_csv, str(spec.get("person", "")),
              str(spec.get("notes", "")), int(sid) if sid is not None else None))
 
     def run_finished(self, run_id: int, status: str, metrics: dict[str, Any] | None,
                      result: dict[str, Any] | None) -> None:
         """Record how a run ended."""
         self._exec("UPDATE runs SET status=?, ended=?, metrics=?, result=? WHERE id=?",
-                   (status, time.time(), _dumps(metrics) if metrics is not None else None,
-                    _dumps(result) if result is not None else None, run_id))
+                   (status, time.time(), strict_json(metrics) if metrics is not None else None,
+                    strict_json(result) if result is not None else None, run_id))
 
     def runs(self, limit: int = 100, offset: int = 0, kind: str | None = None,
              session_id: int | None = None, person: str | None = None) -> list[dict[str, Any]]:

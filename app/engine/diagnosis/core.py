@@ -1006,8 +1006,8 @@ def _baseline_beaten(singles: Sequence[Candidate]) -> dict[str, Any] | None:
 
 
 def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap: dict[str, Any],
-             beaten: dict[str, Any] | None = None) -> str:
-    """The verdict in one line."""
+             beaten: dict[str, Any] | None = None, recal: dict[str, Any] | None = None) -> str:
+    """The verdict in one line (``recal``: :func:`recalibration`'s report, whose unaccounted values it names)."""
     beatable = "" if beaten is None else (
         (f"; {beaten['by']}'s fit left the effect switched off and still closed {beaten['gap_closure']:.2f} of the "
          if beaten["switched_off"] else
@@ -1042,7 +1042,15 @@ def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap:
             out += (f"; with {a['explanation']} beside {a['instead_of']} ({a['description']}), which adds "
                     f"significantly to it; together: "
                     + ", ".join(f"{k} = {v:.3g}" for k, v in a["beside_effect"]["params"].items()))
-    return out + beatable
+    out += beatable
+    if recal is not None and recal["unaccounted"]:
+        # "no significant effect" with a baseline standing in for something is not the same answer
+        # as with one that is not
+        label = {r["name"]: r["meaning"] or r["name"] for r in recal["params"]}
+        out += ("; the recalibration moved " + ", ".join(label[n] for n in recal["unaccounted"])
+                + f" past {FAR_FACTOR:g} × or the end of its range, which nothing in the verdict accounts for: "
+                "the baseline is standing in for something (baseline.recalibration)")
+    return out
 
 
 def recalibration(family: Family, base: Fit, model: Candidate | None = None) -> dict[str, Any]:
@@ -1078,7 +1086,7 @@ def recalibration(family: Family, base: Fit, model: Candidate | None = None) -> 
         moved = abs(v - p.x0) > 1e-9 * max(1.0, abs(p.x0))
         # within 0.5 % of an end: a descent on a rippled cost stops short of the bound it presses on
         on_end = moved and (abs(v - p.lo) <= 5e-3 * max(1.0, abs(p.lo)) or abs(v - p.hi) <= 5e-3 * max(1.0, abs(p.hi)))
-        beyond = p.name in scaled and p.x0 > 0.0 and not p.x0 / FAR_FACTOR <= v <= p.x0 * FAR_FACTOR
+        beyond = p.x0 > 0.0 and not p.x0 / FAR_FACTOR <= v <= p.x0 * FAR_FACTOR
         is_far = p.name in scaled and (beyond or on_end)
         if is_far:
             far.append(p.name)
@@ -1426,14 +1434,6 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     selected = kept
     e_final, nr_final = _e(ref_sc, norm)
     recal = recalibration(family, base, selected[-1] if selected else None)
-    summary = _summary(selected, alternatives, gap, beaten)
-    if recal["unaccounted"]:
-        # said on the verdict's line too: "no significant effect" with a baseline standing in for
-        # something is not the same answer as with one that is not
-        meanings = getattr(family, "meaning", {})
-        summary += ("; the recalibration moved " + ", ".join(meanings.get(n, n) for n in recal["unaccounted"])
-                    + f" past {FAR_FACTOR:g} × or the end of its range, which nothing in the verdict accounts for: "
-                    "the baseline is standing in for something (baseline.recalibration)")
     chans = list(family.channels)
     return {
         "family": family.name,
@@ -1468,7 +1468,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                     "alternatives": [a["explanation"] for a in alternatives
                                      if a["confusable"] or a["better"] or a["also"]],
                     "baseline_beaten": beaten,
-                    "summary": summary},
+                    "summary": _summary(selected, alternatives, gap, beaten, recal)},
         "how_far": {"before": dict(zip(chans, map(float, nr_base), strict=True)),
                     "after": dict(zip(chans, map(float, nr_final), strict=True)),
                     "model": model, "e_before": e_base, "e_after": e_final, "e_floor": e_floor,
