@@ -526,8 +526,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     g.add_argument("--adapter", choices=("auto", "station", "chamber_leak", "emps"), default="auto",
                    help="log format (auto: by the files found)")
     g.add_argument("--held-out", nargs="*", default=None,
-                   help="experiment names to withhold from fitting (default: the last third by name; "
-                        "one experiment: its last 40 %%)")
+                   help="experiment names to withhold from fitting (default, station logs: the last "
+                        "repetition of every experiment run more than once; logs run once: a third of them, "
+                        "only where the rest excite the same regimes; other adapters: the last third by "
+                        "name; one experiment: its last 40 %%)")
     g.add_argument("--bound", action="append", default=[], metavar="NAME=LO:HI",
                    help="station logs: the recalibration's range for one baseline parameter, replacing the wide "
                         "default (e.g. dead_volume_scale=0.9:1.1 for measured dead volumes); repeatable; the "

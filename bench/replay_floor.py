@@ -1,4 +1,4 @@
-"""What holds the true model off the noise floor: the replay's own floor (issue 6, docs/diagnosis.md).
+"""What holds the true model off the noise floor: the replay's own floor (issue 6, docs/diagnosis-record.md).
 
 Replays held-out protocol logs of one withheld-effect case with the *true*
 parameters (the suite's oracle) and the rig's sensor noise switched off, so

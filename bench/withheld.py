@@ -21,7 +21,7 @@ in form (:data:`~app.engine.diagnosis.suite.STRUCTURAL`), each effect-free
 ``--once coverage`` runs the protocol once per case (no repetition to hold
 out) and splits it as ``cwrr diagnose`` splits such logs
 (:func:`~app.engine.diagnosis.run.split_by_coverage`); ``--once last_third``
-by the rule that split them before (docs/diagnosis.md, "Logs run once").
+by the rule that split them before (docs/diagnosis-record.md, "Logs run once").
 
 ``--per-direction`` runs the rigs whose static and Coulomb friction is off
 per direction on top of the grouped errors
@@ -29,7 +29,7 @@ per direction on top of the grouped errors
 :data:`PER_DIRECTION`): two effect-free ones and two with sensor offsets as
 well; each row also carries the fitted offsets, what they were weighed
 against (``weighed``) and how far the verdict's model closes the gap
-(docs/diagnosis.md, "A sensor offset or friction per direction"; saved in
+(docs/diagnosis-record.md, "A sensor offset or friction per direction"; saved in
 ``docs/figures/withheld_per_direction.json``).
 """
 
@@ -66,7 +66,8 @@ if __name__ == "__main__":
     ap.add_argument("--seeds", type=int, default=1, help="parameter-error/noise draws per effect and magnitude")
     ap.add_argument("--nulls", type=int, default=4, help="effect-free rigs")
     ap.add_argument("--effects", nargs="*", default=list(MAGNITUDES))
-    ap.add_argument("--seed0", type=int, default=100, help="first draw's seed (docs/diagnosis.md's tables: 100, 101)")
+    ap.add_argument("--seed0", type=int, default=100,
+                    help="first draw's seed (docs/diagnosis-record.md's tables: 100, 101)")
     ap.add_argument("--null-seed0", type=int, default=200, help="first effect-free rig's seed")
     ap.add_argument("--structural", action="store_true", help="the form-mismatched rigs instead (see above)")
     ap.add_argument("--per-direction", action="store_true",

@@ -518,7 +518,7 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     assert proto["person"] == "P-021", proto
     with urllib.request.urlopen(base + "/api/runs?kind=protocol&limit=2", timeout=10) as r:
         assert [x["person"] for x in json.loads(r.read())] == ["P-021", "P-021"]
-    # a verdict weighed against a baseline of another form (docs/diagnosis.md, "A sensor offset or
+    # a verdict weighed against a baseline of another form (docs/diagnosis-record.md, "A sensor offset or
     # friction per direction") is said under it: that report, as the engine writes it, shown by the page
     with urllib.request.urlopen(base + "/api/runs?kind=diagnosis&limit=1", timeout=10) as r:
         rep = json.loads(urllib.request.urlopen(f"{base}/api/runs/{json.loads(r.read())[0]['id']}",

@@ -64,7 +64,7 @@ def test_logs_run_once_are_held_out_only_where_other_logs_excite_the_same(nomina
     """Without repetitions a third of the logs is still withheld whole, but never the only one with
     motion at speed or the only shut after a fast fill: the last third of the protocol (friction
     sweep, sine sweep, isotonic) left the fit no motion at all, and inertia, supply droop and valve
-    dynamics went unnamed on the protocol run once (docs/diagnosis.md)."""
+    dynamics went unnamed on the protocol run once (docs/diagnosis-record.md)."""
     calib, held, why = _split_station(nominal_logs, None)
     assert len(held) == math.ceil(len(nominal_logs) / 3) and len(calib) + len(held) == len(nominal_logs)
     fitted = set().union(*(excites(e) for e in calib))
@@ -608,7 +608,7 @@ def test_fill_shut_shows_the_gas_cooling_that_a_dead_volume_cannot_mimic() -> No
 def test_withheld_heat_transfer_heads_the_ranking() -> None:
     """With fill_shut in the protocol the smaller heat-exchange magnitude (h·A = 0.3 W/K) ranks
     first (it was sixth without it: the dead volume absorbed it). On the full protocol it is
-    named, GC 0.70 against the true model's 0.69 (docs/diagnosis.md; 0.52 and not significant before the
+    named, GC 0.70 against the true model's 0.69 (docs/diagnosis-record.md; 0.52 and not significant before the
     baseline's grid in pneumatic fits); the half-length protocol here keeps CI time down."""
     r = run_case("heat_transfer", 0, seed=100, scale=0.5)
     assert r["rank"] == 1, [x["effect"] for x in r["report"]["ranking"]]
@@ -660,7 +660,7 @@ def test_the_recalibration_grids_again_with_the_gains_and_friction_it_fitted() -
     gains and friction at nominal, chose the PRV capacity 1.25 ×; the descent stayed in that basin
     at 1.6 × the calibration cost of a descent from the truth, and tube_dynamics, refitting the
     flows from nominal, closed 0.38 of a gap that was the baseline's own (a false positive). The
-    grid again at the fitted gains and friction (docs/diagnosis.md, "The recalibration's second
+    grid again at the fitted gains and friction (docs/diagnosis-record.md, "The recalibration's second
     grid") finds the valley a descent from the truth ends in."""
     rig = perturbed(211)
     _, fam, preps, scales = _calibration_once(rig, 211)
@@ -827,7 +827,7 @@ def test_a_pneumatic_candidate_recalibrates_the_flows_and_volumes_it_restarts_fr
     0.92 / 0.82 / 1.19 × nominal. Restarted from nominal for the leak's grid, a descent had left the
     three at 1.00 × and the fit's calibration cost at 5.9 × the truth's (tube_dynamics then entered
     a greedy round to soak up the rest). The baseline's grid over the three, run after the
-    effect's, moves them: 2.6 × the truth's cost (docs/diagnosis.md, "Fitting on a replayed simulator")."""
+    effect's, moves them: 2.6 × the truth's cost (docs/diagnosis-record.md, "Fitting on a replayed simulator")."""
     rig = perturbed(100).with_effects(vane_leakage=MAGNITUDES["vane_leakage"][1])
     exps = run_protocol(rig, seed=100)
     calib = [e for e in exps if e.meta["repetition"] == 1]

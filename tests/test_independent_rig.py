@@ -1,5 +1,5 @@
 """The second, independently written rig model of ``bench/independent_rig.py`` behaves as its docstring says
-(the diagnosis's figures on it live in docs/diagnosis.md, "A rig model written apart from ours")."""
+(the diagnosis's figures on it live in docs/diagnosis-record.md, "A rig model written apart from ours")."""
 
 from __future__ import annotations
 
@@ -89,7 +89,7 @@ def test_a_free_handle_thrown_to_the_stops_does_not_bend_the_recalibration(tmp_p
     """``--free-handle``: PRV steps with nobody at the handle throw the vane from stop to stop, where
     the stop takes the pneumatic torque unseen. With the torque there scored, the effect-free rig's
     friction was fitted at 2.0 × and the pressure gains at 1.03 (E 0.12, pre-sliding named); left
-    unscored near the stops, the baseline stays near the rig (docs/diagnosis.md)."""
+    unscored near the stops, the baseline stays near the rig (docs/diagnosis-record.md)."""
     from app.engine.diagnosis.run import diagnose_dir
     from bench import independent_rig as ir
 
@@ -140,7 +140,7 @@ def test_a_tube_behind_a_valve_of_another_form_is_fitted_beside_that_form(tmp_pa
     whose regulators have no hysteresis. Recalibrated without the tube, the baseline takes that form
     and 4.8 × the dead volume. The tube's grid, run under the nominal form alone, chose 10 cm of
     12 mm bore (GC 0.14, not significant); run again beside the form the recalibration found, the fit
-    recovers the tube and gives the dead volume back (docs/diagnosis.md, "A tube beside a form")."""
+    recovers the tube and gives the dead volume back (docs/diagnosis-record.md, "A tube beside a form")."""
     from app.engine.diagnosis.run import diagnose_dir
     from bench import independent_rig as ir
 

@@ -119,7 +119,7 @@ class Param:
         off: For an effect parameter, the value at which the effect (nearly)
             vanishes, so that a fit started there is never worse than the
             model without it (``None``: ``x0``). Where it only nearly vanishes
-            that promise is as good as the "nearly" (docs/diagnosis.md, "Where
+            that promise is as good as the "nearly" (docs/diagnosis-record.md, "Where
             'off' is not the baseline").
     """
 
@@ -466,7 +466,7 @@ def noise_floor(family: Family, preps: Sequence[Any], meas: Sequence[dict[str, n
     what stiction holds, so there every model scores no error. Counting the
     full noise there had read the protocol's torque floor 1.4–1.75 times what
     the noise adds to a right model's error (0.83–1.07 times now; measured
-    on the same rig with its torque sensor noise-free, docs/diagnosis.md).
+    on the same rig with its torque sensor noise-free, docs/diagnosis-record.md).
 
     Args:
         family: The rig family.
@@ -718,7 +718,7 @@ def _evaluate(family: Family, calib: list[Any], held: list[Any], ref: Fit, ref_s
         if beside_form != prior:
             grid_starts.append(gridded(beside_form))
         # One descent, not one from each: a least-squares descent never ends above its start, so
-        # the fit is still never worse than its effect-off start (see docs/diagnosis.md, "One descent")
+        # the fit is still never worse than its effect-off start (see docs/diagnosis-record.md, "One descent")
         f = fit(family, calib, effects, scales=scales, stop=stop, starts=[*starts, *grid_starts], free=rebase,
                 hold=hold)
     else:
@@ -1239,7 +1239,7 @@ def _recalibrated(family: Family, calib: list[Any], start: dict[str, float], sca
     base = fit(family, calib, (), scales=scales, starts=[st], stop=stop, hold=hold)
     if groups:
         # That grid held the other parameters (the sensors' gains, the friction levels) at
-        # nominal. On two effect-free rigs logged once (docs/diagnosis.md, "The recalibration's
+        # nominal. On two effect-free rigs logged once (docs/diagnosis-record.md, "The recalibration's
         # second grid") it chose the wrong basin, the PRV capacity at 1.0 and 1.25 × nominal for
         # a true 0.81 and 0.88 ×, and the descent, in a rippled valley where capacity and dead
         # volume trade, stayed there at 1.4–1.6 × the calibration cost of a descent from the

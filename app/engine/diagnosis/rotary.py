@@ -100,7 +100,7 @@ _PNEUMATIC_EFFECTS = ("vane_leakage", "external_leakage", "heat_transfer", "tube
 # replayed with their true parameters (larger valve lag, tubes and heat exchange; held-out
 # logs): averaged everywhere, the step logs' errors grew 3–23× (to 0.02–0.10 bar RMS); averaged
 # only from 0.5 s after a step, none grew by more than 0.0004 bar and the friction sweep's fell
-# by 13–28 % (see docs/diagnosis.md, "The cycle's mean where the phase is lost")
+# by 13–28 % (see docs/diagnosis-record.md, "The cycle's mean where the phase is lost")
 PHASE_KEPT_S = 0.5
 CYCLE_MEAN_S = 0.1
 STEP_V = 0.01  # a command change this large [V] is a step (the protocol's holds change by none)
@@ -860,7 +860,7 @@ class RotaryFamily:
         sensor_bias won it all back: effect-free rigs with the CCW levels
         15 % above and the CW ones 15 % below the rest's error got a verdict
         of sensor_bias, GC 0.66–0.69, a torque offset of 0.16 N·m and no
-        pressure offset (see docs/diagnosis.md, "A sensor offset or friction
+        pressure offset (see docs/diagnosis-record.md, "A sensor offset or friction
         per direction"). Each alternative names the parameters it adds (as
         :meth:`effect` does) and the step that tells the two apart.
         """
