@@ -69,6 +69,9 @@ def test_the_protocol_table_is_served_from_the_engine(client: TestClient) -> Non
     assert {x for e in t["experiments"] for x in e["makes_visible"]} == set(EFFECT_NAMES)
     assert all(e["description"] for e in t["experiments"]) and t["preroll_s"] == PREROLL_S
     assert t["candidates"] == list(EFFECT_NAMES)  # the page's check boxes, in the library's order
+    # plain words for every candidate, which the page shows beside the name
+    assert set(t["candidate_meaning"]) == set(EFFECT_NAMES) and all(t["candidate_meaning"].values())
+    assert "vane" in t["candidate_meaning"]["vane_leakage"]
     # the recalibration's parameters and default ranges, which the page offers to narrow
     from app.engine.diagnosis.rotary import RotaryFamily
 

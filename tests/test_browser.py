@@ -575,6 +575,11 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#detail")).to_contain_text(
         "a sensor reading nothing bends the fit to match it): isotonic-1 (torque = 0.00).")
     expect(page.locator("#detail")).to_contain_text("Gap left unexplained with sensor_bias: ")
+    # the verdict and every ranked candidate in plain words, the engine's (GET /api/diagnoses/protocol)
+    expect(page.locator("#verdict-meaning")).to_have_text("sensor_bias: pressure or torque sensors reading off zero.")
+    expect(page.locator("#ranking")).to_contain_text("air leaking across the vane's seal from one chamber to the other")
+    # one finding per line, not a run-on paragraph
+    expect(page.locator("#detail li", has_text="Held out: ")).to_have_count(1)
     expect(page.locator("#howfar-legend")).to_contain_text("after with sensor_bias")
     expect(page.locator("#ranking")).to_contain_text("(not the verdict: friction_per_direction explains more)")
     expect(page.locator("#detail")).to_contain_text(

@@ -681,6 +681,21 @@ EFFECT_NAMES: tuple[str, ...] = (
     "valve_dynamics",
 )
 
+EFFECT_MEANING: dict[str, str] = {
+    "inertia": "the rotating mass of the vane, handle and arm, which the thesis's model leaves out",
+    "vane_leakage": "air leaking across the vane's seal from one chamber to the other",
+    "external_leakage": "air leaking out of the chambers into the room",
+    "heat_transfer": "air warming as it is compressed and cooling as it expands, then exchanging heat with the walls "
+                     "(the thesis's model keeps it at room temperature)",
+    "tube_dynamics": "the tubes between the valves and the chambers: their volume, restriction and delay",
+    "presliding_friction": "the seals' springy give before the vane breaks away",
+    "sensor_bias": "pressure or torque sensors reading off zero",
+    "supply_droop": "the supply pressure sagging while the valves draw air",
+    "valve_dynamics": "valves following their commands with a delay",
+}
+"""What each candidate effect is on the rotary rig, in plain words (the dashboard shows it beside the name)."""
+assert set(EFFECT_MEANING) == set(EFFECT_NAMES)
+
 
 @dataclass(frozen=True)
 class Effects:

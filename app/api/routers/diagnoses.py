@@ -155,12 +155,14 @@ class ProtocolTable(Documented):
         experiments: In the order the station runs them.
         preroll_s: Rest logged before each open-loop experiment's first step [s].
         candidates: The candidate effects the diagnosis tries (and a simulated rig can have switched on).
+        candidate_meaning: What each candidate is on the rig, in plain words.
         baseline: The rotary rig's recalibrated parameters and their default ranges.
     """
 
     experiments: list[ProtocolExperiment]
     preroll_s: float
     candidates: list[EffectName]
+    candidate_meaning: dict[EffectName, str]
     baseline: list[BaselineRange]
 
 
@@ -172,12 +174,12 @@ log = logging.getLogger(__name__)
 def protocol_table() -> ProtocolTable:
     from app.engine.diagnosis.protocol import DESCRIPTION, PREROLL_S, VISIBLE
     from app.engine.diagnosis.rotary import RotaryFamily
-    from app.engine.params import EFFECT_NAMES
+    from app.engine.params import EFFECT_MEANING, EFFECT_NAMES
 
     # validated against EffectName: an engine table naming an unknown effect fails here, not in the page
     return ProtocolTable.model_validate({
         "experiments": [{"name": k, "description": DESCRIPTION[k], "makes_visible": v} for k, v in VISIBLE.items()],
-        "preroll_s": PREROLL_S, "candidates": list(EFFECT_NAMES),
+        "preroll_s": PREROLL_S, "candidates": list(EFFECT_NAMES), "candidate_meaning": EFFECT_MEANING,
         "baseline": [{"name": p.name, "meaning": m, "nominal": p.x0, "low": p.lo, "high": p.hi}
                      for p, m in RotaryFamily.default_ranges()]})
 
