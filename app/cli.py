@@ -371,6 +371,7 @@ def _modbus_plant(args: argparse.Namespace) -> int:
 def _diagnose(args: argparse.Namespace) -> int:
     """Diagnose the logs in ``args.logdir`` and print the verdict (issue 6)."""
     from app.engine.diagnosis.run import diagnose_dir
+    from app.engine.params import EFFECT_MEANING
 
     bounds = {}
     for text in args.bound:
@@ -393,6 +394,9 @@ def _diagnose(args: argparse.Namespace) -> int:
               + f"; E {r['how_far']['e_before']:.3g} → {r['how_far']['e_after']:.3g} "
               + (f"with {' + '.join(m)} " if (m := r["how_far"].get("model", v["effects"])) != v["effects"] else "")
               + f"(floor {r['how_far']['e_floor']:.3g})")
+        if report.get("adapter") == "station":  # the plain words are the rotary rig's (a drive has no vane)
+            for e in v["effects"]:
+                print(f"  {e}: {EFFECT_MEANING[e]}")
         # where the baseline's error lies: each channel against its floor, and the held-out log most of it is in
         parts = []
         for w in r["where"]:

@@ -562,7 +562,9 @@ def test_withheld_sensor_bias_through_the_cli(tmp_path: Path, capsys: pytest.Cap
     assert "motion" in r["experiments"]["excites"]["friction_sweep-1"]
     assert "shut after a fast fill or vent" in r["experiments"]["excites"]["fill_shut-2"]
     assert r["experiments"]["unshown"] == {} and r["verdict"]["untested"] == []  # the protocol shows every one
-    assert "held out: " in capsys.readouterr().out  # which logs scored the verdict, and why those
+    printed = capsys.readouterr().out
+    assert "held out: " in printed  # which logs scored the verdict, and why those
+    assert "\n  sensor_bias: pressure or torque sensors reading off zero\n" in printed  # the verdict in plain words
 
 
 @pytest.mark.slow
