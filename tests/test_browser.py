@@ -521,8 +521,15 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     # a verdict weighed against a baseline of another form (docs/diagnosis-record.md, "A sensor offset or
     # friction per direction") is said under it: that report, as the engine writes it, shown by the page
     with urllib.request.urlopen(base + "/api/runs?kind=diagnosis&limit=1", timeout=10) as r:
-        rep = json.loads(urllib.request.urlopen(f"{base}/api/runs/{json.loads(r.read())[0]['id']}",
-                                                timeout=10).read())["result"]
+        diag_id = json.loads(r.read())[0]["id"]
+        rep = json.loads(urllib.request.urlopen(f"{base}/api/runs/{diag_id}", timeout=10).read())["result"]
+    stored = json.loads(json.dumps(rep))  # as stored: rep is altered below to show other findings
+    # the report as stored, to download
+    expect(page.locator("#download")).to_be_visible()
+    assert page.locator("#download").get_attribute("download") == f"diagnosis-{diag_id}.json"
+    with page.expect_download() as dl:
+        page.click("#download")
+    assert json.loads(Path(dl.value.path()).read_text())["verdict"] == rep["verdict"]
     assert rep["alternatives"] == [] or rep["verdict"]["effects"] == ["sensor_bias"], rep["verdict"]
     far = rep["baseline"]["recalibration"]["far"]
     expect(page.locator("#recal tr.far")).to_have_count(len(far))
@@ -594,6 +601,17 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#runids")).to_have_value(ids)
     expect(page.locator("#src")).to_have_value("runs")
     expect(page.locator("#runs")).to_be_visible()
+    # a stored diagnosis reopens from the station's history with its whole report
+    page.goto(base)
+    page.locator(f"#runs tbody tr[data-run='{diag_id}'] td").nth(2).click()
+    expect(page.locator("#last")).to_contain_text(f"Gap diagnosis {diag_id}: complete")
+    page.click("#open-report")
+    expect(page.locator("#msg")).to_contain_text(f"diagnosis {diag_id} complete")
+    expect(page.locator("#verdict")).to_have_text(" + ".join(stored["verdict"]["effects"]) or "no significant effect")
+    expect(page.locator("#ranking tr")).to_have_count(1 + len(stored["ranking"]))
+    # a run that is not a diagnosis is said to be one, not shown as a failed diagnosis
+    page.goto(f"{base}/static/diagnosis.html?report={proto['id']}")
+    expect(page.locator("#msg")).to_have_text(f"run {proto['id']} is a diagnosis_protocol run, not a diagnosis")
     assert not errors, errors
 
 
