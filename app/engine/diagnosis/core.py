@@ -1014,7 +1014,11 @@ def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap:
          f"; {beaten['by']}'s fit, with the effect taken out, still closes {beaten['rebased_gap_closure']:.2f} of the ")
         + "gap: the baseline's own parameters, refitted beside it, did; "
         + ("the baseline was recalibrated from there and every candidate judged against that"
-           if beaten.get("rereferenced") else "a descent of the baseline from there was no cheaper"))
+           if beaten.get("rereferenced") else
+           # the calibration logs prefer the reference, the held-out ones those values: say what that means
+           "a descent of the baseline from there was no cheaper on the calibration logs, so part of the gap may "
+           "lie in values the calibration and held-out logs see differently (drift, or a regime only one of them "
+           "visits)"))
     if selected:
         out = " + ".join(c.effect for c in selected)
     elif any(a["dropped"] for a in alternatives):
