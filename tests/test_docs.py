@@ -51,3 +51,14 @@ def test_every_relative_link_leads_to_a_file_and_heading_that_exist(page: Path) 
         elif anchor and dest.suffix == ".md" and anchor not in _anchors(dest):
             broken.append(f"{target}: no heading #{anchor} in {dest.name}")
     assert not broken, f"{page.name}: " + "; ".join(broken)
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "docs" / "figures").rglob("*.json")),
+                         ids=lambda p: str(p.relative_to(ROOT / "docs" / "figures")))
+def test_every_saved_figure_is_strict_json(path: Path) -> None:
+    import json
+
+    def refuse(token: str) -> float:
+        raise AssertionError(f"{path.name}: bare {token}, which JSON.parse and jq refuse")
+
+    json.loads(path.read_text(encoding="utf-8"), parse_constant=refuse)
