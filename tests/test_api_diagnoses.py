@@ -95,6 +95,22 @@ def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestCli
     assert run["metrics"]["e_after"] < run["metrics"]["e_before"]
     assert {"baseline", "ranking", "verdict", "where", "how_far"} <= set(rep)
     assert rep["baseline"]["bounds"]["gain_a"] == [0.9, 1.1] and rep["baseline"]["bounds"]["gain_b"] == [0.8, 1.2]
+    # the same report, typed: every field it holds comes back, with the schema /openapi.json describes
+    typed = client.get(f"/api/runs/{rid}/report")
+    assert typed.status_code == 200, typed.text
+    assert typed.json() == rep | {"run_id": rid}
+    schema = client.get("/openapi.json").json()["components"]["schemas"]
+    assert schema["DiagnosisReport"]["properties"]["verdict"]["$ref"].endswith("/Verdict")
+    assert "GC = (E_base" in schema["CandidateScore"]["properties"]["gap_closure"]["description"]
+    # a run of another kind has no report; a diagnosis without one says why
+    from tests.test_log_import import META, _csv, _log
+
+    other = client.post("/api/runs", json={"name": "other", "meta": META, "csv": _csv(_log(0.5))})
+    assert other.status_code == 201, other.text
+    oid = other.json()["id"]
+    r = client.get(f"/api/runs/{oid}/report")
+    assert r.status_code == 404 and r.json()["detail"] == f"run {oid} is not a gap diagnosis (its kind: imported)"
+    assert client.get("/api/runs/999999/report").status_code == 404
     page = client.get("/static/diagnosis.html")
     assert page.status_code == 200 and "/api/diagnoses" in page.text
 
@@ -104,6 +120,9 @@ def test_stopping_the_server_cancels_a_running_diagnosis_and_records_it(tmp_path
     with TestClient(app) as c:
         rid = c.post("/api/diagnoses", json={"protocol": {"scale": 10.0}}).json()["run_id"]
         assert c.get(f"/api/runs/{rid}").json()["status"] == "running"
+        r = c.get(f"/api/runs/{rid}/report")
+        assert r.status_code == 409 and r.json()["detail"] == (
+            f"diagnosis {rid} is running; its report comes when it is complete")
         assert app.state.jobs.running() == [f"diagnosis-{rid}"]
         # one diagnosis at a time: a second would halve the speed of both and crowd the engine
         r = c.post("/api/diagnoses", json={"protocol": {}})

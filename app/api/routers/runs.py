@@ -17,6 +17,7 @@ from pydantic import Field
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import IdPath, StoreDep
+from app.api.diagnosis_report import DiagnosisReport
 from app.api.models import PERSON_PATTERN, Documented, NotesIn, RunInfo, Series
 from app.engine.params import ParameterError
 from app.engine.station import RunKind
@@ -71,6 +72,21 @@ def list_runs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000, descri
 @router.get("/{run_id}", response_model=RunInfo, responses=NOT_FOUND, summary="One run with metrics and results")
 def run_detail(run_id: IdPath, store: StoreDep) -> RunInfo:
     return _info(_get(store, run_id))
+
+
+@router.get("/{run_id}/report", response_model=DiagnosisReport, response_model_exclude_unset=True,  # as stored
+            responses={404: {"description": "No such run, or it is not a gap diagnosis"},
+                       409: {"description": "The diagnosis is still running, or it failed or was cancelled"}},
+            summary="A gap diagnosis's report, typed (the run's result, with a schema)")
+def diagnosis_report(run_id: IdPath, store: StoreDep) -> DiagnosisReport:
+    r = _get(store, run_id)
+    if r["kind"] != "diagnosis":
+        raise HTTPException(404, f"run {run_id} is not a gap diagnosis (its kind: {r['kind']})")
+    if r["status"] != "complete":
+        why = (r["result"] or {}).get("error")
+        raise HTTPException(409, f"diagnosis {run_id} is {r['status']}" + (f": {why}" if why else "")
+                            + ("; its report comes when it is complete" if r["status"] == "running" else ""))
+    return DiagnosisReport.model_validate(r["result"] | {"run_id": run_id})
 
 
 @router.patch("/{run_id}", response_model=RunInfo, dependencies=[THERAPIST],
