@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response
-from pydantic import Field
+from pydantic import Field, ValidationError
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import IdPath, StoreDep
@@ -76,7 +76,8 @@ def run_detail(run_id: IdPath, store: StoreDep) -> RunInfo:
 
 @router.get("/{run_id}/report", response_model=DiagnosisReport, response_model_exclude_unset=True,  # as stored
             responses={404: {"description": "No such run, or it is not a gap diagnosis"},
-                       409: {"description": "The diagnosis is still running, or it failed or was cancelled"}},
+                       409: {"description": "The diagnosis is still running, failed or was cancelled, or its "
+                                            "stored report predates the schema"}},
             summary="A gap diagnosis's report, typed (the run's result, with a schema)")
 def diagnosis_report(run_id: IdPath, store: StoreDep) -> DiagnosisReport:
     r = _get(store, run_id)
@@ -86,7 +87,13 @@ def diagnosis_report(run_id: IdPath, store: StoreDep) -> DiagnosisReport:
         why = (r["result"] or {}).get("error")
         raise HTTPException(409, f"diagnosis {run_id} is {r['status']}" + (f": {why}" if why else "")
                             + ("; its report comes when it is complete" if r["status"] == "running" else ""))
-    return DiagnosisReport.model_validate(r["result"] | {"run_id": run_id})
+    try:
+        return DiagnosisReport.model_validate(r["result"] | {"run_id": run_id})
+    except ValidationError as exc:  # a report stored by an older engine, without a field the schema needs
+        first = exc.errors()[0]
+        raise HTTPException(409, f"diagnosis {run_id}'s stored report does not fit the schema "
+                                 f"({'.'.join(map(str, first['loc']))}: {first['msg']}); GET /api/runs/{run_id} "
+                                 "has it as stored") from None
 
 
 @router.patch("/{run_id}", response_model=RunInfo, dependencies=[THERAPIST],
