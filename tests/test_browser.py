@@ -561,10 +561,16 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     rep["how_far"]["model"] = ["sensor_bias"]
     rep["experiments"]["flat_channels"] = {"isotonic-1": {"torque": 0.0}}
     rep["ranking"][0]["rebased_gap_closure"] = 0.0123
+    # the verdict's own fit moved a nominal value past a tolerance: its column marks it
+    for row in rep["baseline"]["recalibration"]["params"]:
+        row |= {"in_model": row["value"], "in_model_far": False}
+    rep["baseline"]["recalibration"]["params"][2] |= {"in_model": 0.36, "in_model_far": True}
     rep["verdict"]["baseline_beaten"] = {"by": "heat_transfer", "gap_closure": -0.46, "rebased_gap_closure": 0.202,
                                          "switched_off": False, "rereferenced": True}
     page.evaluate("rep => show(rep)", rep)
     expect(page.locator("#ranking")).to_contain_text("GC without the effect")
+    expect(page.locator("#recal td.far")).to_have_count(1)
+    expect(page.locator("#recal td.far")).to_have_text("0.360")
     expect(page.locator("#ranking")).to_contain_text("0.0123")
     # a candidate that is not significant says which tests it failed
     why = [c["not_significant_because"] for c in rep["ranking"] if not c["significant"]]

@@ -905,6 +905,14 @@ def test_the_report_says_when_the_verdicts_effect_gives_a_far_value_back() -> No
     assert "With tube in the model, dead volume × nominal comes back to 1.3" in r["note"]
     assert "accounts for" not in r["note"] and "does not account" not in r["note"]
     assert {p["name"]: p["in_model"] for p in r["params"]}["volume_scale"] == 1.3
+    assert not any(p["in_model_far"] for p in r["params"])
+    # the verdict's own fit moving a nominal value as far is marked in its column, whatever the baseline's
+    leak = core.Candidate("tube", _fit_at({"volume_scale": 0.36, "flow_scale": 1.0, "closure": 0.0,
+                                           "tube.length": 5.0}), scores, 0.8, (0.7, 0.9), 50.0, {}, {}, True, True)
+    rows = {p["name"]: p for p in core.recalibration(_ScaledFamily(), _fit_at({"volume_scale": 1.2, "flow_scale": 1.0,
+                                                                               "closure": 0.0}), leak)["params"]}
+    assert rows["volume_scale"]["in_model_far"] and not rows["volume_scale"]["far"]
+    assert not rows["flow_scale"]["in_model_far"] and not rows["closure"]["in_model_far"]
     # an effect whose fit leaves the value where it was does not account for it
     still = core.Candidate("inertia", _fit_at(base.params | {"tube.length": 0.0}), scores, 0.3, (0.1, 0.5), 20.0,
                            {}, {}, True, True)

@@ -83,6 +83,7 @@ class RecalibratedParam(_Open):
         at_bound: On an end of its range, away from nominal.
         far: Moved past what a tolerance explains (2 × either way, or an end of its range).
         in_model: Its value in the fit of the verdict's last effect.
+        in_model_far: That value is past a tolerance too (by the rule of ``far``).
     """
 
     name: str
@@ -95,6 +96,7 @@ class RecalibratedParam(_Open):
     at_bound: bool = False
     far: bool = False
     in_model: Num = None
+    in_model_far: bool = False
 
 
 class Recalibration(_Open):

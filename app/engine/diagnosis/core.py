@@ -1057,6 +1057,16 @@ def _summary(selected: list[Candidate], alternatives: list[dict[str, Any]], gap:
     return out
 
 
+def _far(p: Param, v: float, scaled: bool) -> tuple[bool, bool]:
+    """Whether ``v`` sits on an end of ``p``'s range away from nominal, and whether it is *far* (a nominal
+    scale, ``scaled``, moved past :data:`FAR_FACTOR` either way or onto an end)."""
+    moved = abs(v - p.x0) > 1e-9 * max(1.0, abs(p.x0))
+    # within 0.5 % of an end: a descent on a rippled cost stops short of the bound it presses on
+    on_end = moved and (abs(v - p.lo) <= 5e-3 * max(1.0, abs(p.lo)) or abs(v - p.hi) <= 5e-3 * max(1.0, abs(p.hi)))
+    beyond = p.x0 > 0.0 and not p.x0 / FAR_FACTOR <= v <= p.x0 * FAR_FACTOR
+    return on_end, scaled and (beyond or on_end)
+
+
 def recalibration(family: Family, base: Fit, model: Candidate | None = None) -> dict[str, Any]:
     """What the recalibration made of each baseline parameter, and which it moved further than a tolerance.
 
@@ -1075,8 +1085,9 @@ def recalibration(family: Family, base: Fit, model: Candidate | None = None) -> 
     Returns:
         ``params``: per baseline parameter its ``value``, ``nominal``,
         ``range``, ``sd``, ``at_bound`` (on an end of its range, away from
-        nominal), ``far`` and ``in_model`` (its value in ``model``'s fit, or
-        ``None``); ``far``: the far ones' names; ``unaccounted``: those
+        nominal), ``far``, ``in_model`` (its value in ``model``'s fit, or
+        ``None``) and ``in_model_far`` (that value is far by the same
+        rule); ``far``: the far ones' names; ``unaccounted``: those
         ``model`` does not bring back within the factor; ``note``: a
         sentence on them (``None`` when none is far).
     """
@@ -1087,16 +1098,16 @@ def recalibration(family: Family, base: Fit, model: Candidate | None = None) -> 
     far: list[str] = []
     for p in _specs(family, ()):
         v = base.params[p.name]
-        moved = abs(v - p.x0) > 1e-9 * max(1.0, abs(p.x0))
-        # within 0.5 % of an end: a descent on a rippled cost stops short of the bound it presses on
-        on_end = moved and (abs(v - p.lo) <= 5e-3 * max(1.0, abs(p.lo)) or abs(v - p.hi) <= 5e-3 * max(1.0, abs(p.hi)))
-        beyond = p.x0 > 0.0 and not p.x0 / FAR_FACTOR <= v <= p.x0 * FAR_FACTOR
-        is_far = p.name in scaled and (beyond or on_end)
+        on_end, is_far = _far(p, v, p.name in scaled)
         if is_far:
             far.append(p.name)
+        m = model.fit.params.get(p.name) if model is not None else None
         rows.append({"name": p.name, "meaning": meaning.get(p.name, ""), "value": v, "nominal": p.x0,
                      "range": [p.lo, p.hi], "unit": p.unit, "sd": base.sd.get(p.name, math.nan), "at_bound": on_end,
-                     "far": is_far, "in_model": model.fit.params.get(p.name) if model is not None else None})
+                     "far": is_far, "in_model": m,
+                     # the verdict's own fit can move a nominal value as far (a leak's fit, the dead volume
+                     # it refits beside it): shown as such, not only where the baseline's was far
+                     "in_model_far": m is not None and _far(p, m, p.name in scaled)[1]})
     note = None
     back: list[str] = []
     if far:
