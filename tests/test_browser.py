@@ -614,6 +614,10 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     page.click("#open-report")
     expect(page.locator("#msg")).to_contain_text(f"diagnosis {diag_id} complete")
     expect(page.locator("#verdict")).to_have_text(" + ".join(stored["verdict"]["effects"]) or "no significant effect")
+    from app.engine.params import EFFECT_MEANING
+
+    expect(page.locator("#verdict-meaning")).to_have_text(
+        " ".join(f"{e}: {EFFECT_MEANING[e]}." for e in stored["verdict"]["effects"]))
     expect(page.locator("#ranking tr")).to_have_count(1 + len(stored["ranking"]))
     # a run that is not a diagnosis is said to be one, not shown as a failed diagnosis
     page.goto(f"{base}/static/diagnosis.html?report={proto['id']}")

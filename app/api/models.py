@@ -42,8 +42,13 @@ def attribute_docs(doc: str | None) -> dict[str, str]:
 
 
 def _describe_fields(schema: dict[str, Any], model: type[BaseModel]) -> None:
-    """Give each property of ``model``'s JSON schema the text its docstring's ``Attributes:`` has for it."""
-    docs = attribute_docs(model.__doc__)
+    """Give each property of ``model``'s JSON schema the text its docstring's ``Attributes:`` has for it.
+
+    A field a subclass inherits is described by the class that declares it (the subclass's own text wins).
+    """
+    docs: dict[str, str] = {}
+    for cls in reversed(model.__mro__):
+        docs |= attribute_docs(cls.__doc__) if issubclass(cls, BaseModel) else {}
     for name, prop in schema.get("properties", {}).items():
         if name in docs:
             prop["description"] = docs[name]
