@@ -997,3 +997,19 @@ def test_the_torque_is_not_scored_where_an_end_stop_takes_part_of_it(nominal_log
     assert np.array_equal(np.isnan(after[early]), np.isnan(before[early]))
     assert fam.at_stops(np.array([0.0, th_max - 0.03, -th_max + 0.03, th_max - 0.04])).tolist() == [
         False, True, True, False]  # 2° = 0.0349 rad
+
+
+def test_a_single_station_log_is_split_in_time_and_diagnosed(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    # one log, as a lab might hand over: fitted on its first 60 %, scored on the rest. The regimes
+    # each part shows are read off the parts (the whole log's had been looked up for them: KeyError)
+    from app.cli import main
+
+    run_protocol(PlantParams(), seed=2, repetitions=1, scale=0.3, kinds=["hold_closed"], outdir=tmp_path)
+    out = tmp_path / "r.json"
+    assert main(["diagnose", str(tmp_path), "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["experiments"]["split"] == "one log: fitted on its first 60 %, scored on the rest"
+    assert r["experiments"]["held_out"] == ["hold_closed-1[held-out]"]
+    assert list(r["experiments"]["excites"]) == ["hold_closed-1"]
+    assert "held out: hold_closed-1[held-out]" in capsys.readouterr().out

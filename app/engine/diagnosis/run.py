@@ -114,7 +114,8 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     report["baseline"]["bounds"] = {p.name: [p.lo, p.hi] for p in family.baseline()}
     report["experiments"]["split"] = why
     # what each log gave the fit to learn from (the regimes the split weighs)
-    sig = {id(e): excites(e) for e in exps}
+    # (a single log is split in time: its two parts are logs of their own here)
+    sig = {id(e): excites(e) for e in (*exps, *calib, *held)}
     report["experiments"]["excites"] = {e.name: sorted(sig[id(e)]) for e in exps}
     hidden = unshown(set().union(*(sig[id(e)] for e in calib)), set().union(*(sig[id(e)] for e in held)))
     report["experiments"]["unshown"] = hidden
