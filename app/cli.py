@@ -439,6 +439,10 @@ def _diagnose(args: argparse.Namespace) -> int:
                   "ideal supply; a sensor reading nothing bends the fit to match it): "
                   + ", ".join(f"{n} ({', '.join(f'{c} = {v:g}' for c, v in chans.items())})"
                               for n, chans in flat.items()))
+        unmeasured = r["experiments"].get("unmeasured_channels", {})
+        if unmeasured:
+            print("  not measured: " + ", ".join(f"{c} (reads {v:g} in every log)" for c, v in unmeasured.items())
+                  + "; left out of every fit and of E")
         unscored = r["experiments"].get("unscored_channels", [])
         if unscored:
             print(f"  not scored: {', '.join(unscored)} (no held-out sample could be, e.g. a handle resting on an end "

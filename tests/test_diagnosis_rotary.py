@@ -1013,3 +1013,31 @@ def test_a_single_station_log_is_split_in_time_and_diagnosed(tmp_path: Path,
     assert r["experiments"]["held_out"] == ["hold_closed-1[held-out]"]
     assert list(r["experiments"]["excites"]) == ["hold_closed-1"]
     assert "held out: hold_closed-1[held-out]" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_torque_that_reads_one_value_in_every_log_is_taken_as_not_measured(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # a lab without a torque sensor, or a rig model that writes zeros there: fitted as a measured
+    # constant, the zeros bent the baseline until a large vane leak went unnamed (GC 0.97 without them)
+    rig = PlantParams().with_effects(vane_leakage=MAGNITUDES["vane_leakage"][1])
+    run_protocol(rig, seed=6, scale=0.4, kinds=["hold_closed", "fill_shut", "friction_sweep"], outdir=tmp_path)
+    for csv in tmp_path.glob("*.csv"):
+        head, *rows = csv.read_text().splitlines()
+        data = np.array([[float(v) for v in r.split(",")] for r in rows])
+        data[:, head.split(",").index("torque")] = 0.0
+        csv.write_text(head + "\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in data) + "\n")
+    out = tmp_path / "r.json"
+    from app.cli import main
+
+    assert main(["diagnose", str(tmp_path), "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["experiments"]["unmeasured_channels"] == {"torque": 0.0}
+    assert set(r["baseline"]["nrmse"]) == {"p_a", "p_b", "p_s"}  # left out of every fit and of E
+    assert r["verdict"]["effects"][:1] == ["vane_leakage"], r["verdict"]
+    # what only the torque shows is not ruled out, and the report says why
+    assert {"inertia", "presliding_friction"} <= set(r["verdict"]["untested"])
+    why = {c["effect"]: c["not_significant_because"] for c in r["ranking"]}["inertia"]
+    assert "no log measures the torque (it reads 0 in every log), so these logs cannot rule it out" in why
+    assert "torque read one value in every log, taken as not measured and left out" in r["verdict"]["summary"]
+    assert "not measured: torque (reads 0 in every log)" in capsys.readouterr().out

@@ -39,6 +39,8 @@ class Experiments(_Open):
         irregular_sampling: Logs with skipped or uneven samples (put on a uniform grid; made-up samples unscored).
         flat_channels: Logs with a channel that reads one value throughout, and that value.
         unscored_channels: Channels no held-out sample could score (left out of every fit and of E).
+        unmeasured_channels: Channels a rig may lack that read one value in every log, with that value: taken
+            as not measured, left out of every fit and of E.
     """
 
     calibration: list[str]
@@ -49,6 +51,7 @@ class Experiments(_Open):
     irregular_sampling: dict[str, Any] = Field(default_factory=dict)
     flat_channels: dict[str, dict[str, Num]] = Field(default_factory=dict)
     unscored_channels: list[str] = Field(default_factory=list)
+    unmeasured_channels: dict[str, Num] = Field(default_factory=dict)
 
 
 class Gap(_Open):

@@ -366,6 +366,10 @@ class RotaryFamily:
     channels: tuple[str, ...] = ("p_a", "p_b", "p_s", "torque")
     shared_scale: tuple[tuple[str, ...], ...] = (("p_a", "p_b", "p_s"),)  # see core: one pressure scale
     candidates: tuple[str, ...] = EFFECT_NAMES
+    # a channel the replay reads nothing from, which a rig may lack (a lab without a torque sensor, a
+    # rig model that writes zeros): reading one value in every log, it is taken as not measured
+    # (run.diagnose_dir), and the candidates seen only through it cannot be tested
+    optional_channels: ClassVar[dict[str, tuple[str, ...]]] = {"torque": ("inertia", "presliding_friction")}
     # for the report's recalibration table (core.recalibration): the parameters that scale a nominal
     # value, what each is, and what an effect standing in for it there looks like
     nominal_scales: tuple[str, ...] = (*_PNEUMATIC_BASE, "gain_a", "gain_b", "friction_scale", "viscous_scale")

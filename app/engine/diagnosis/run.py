@@ -12,7 +12,14 @@ import numpy as np
 from app.engine.diagnosis import rotary
 from app.engine.diagnosis.core import diagnose
 from app.engine.diagnosis.families import ChamberFamily, DriveFamily, split_time
-from app.engine.diagnosis.logs import Experiment, LogFormatError, read_chamber_leak, read_emps, read_logdir
+from app.engine.diagnosis.logs import (
+    Experiment,
+    LogFormatError,
+    flat_channels,
+    read_chamber_leak,
+    read_emps,
+    read_logdir,
+)
 from app.engine.diagnosis.protocol import effect_experiments
 from app.engine.diagnosis.rotary import RotaryFamily
 
@@ -109,8 +116,16 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     if linear:
         raise LogFormatError(f"{d}: {', '.join(linear)} come from the linear rig; the replay family covers "
                              "the rotary rig (diagnose linear-rig logs in a directory of their own once it does)")
+    # a channel the rig may lack that reads one value in every log measures nothing: fitted as a
+    # constant it bends the baseline (a torque read as 0 throughout hid a vane leak that closes 0.97
+    # of the gap without it), so it leaves the diagnosis and the report says so
+    flats = [flat_channels(e) for e in exps]
+    unmeasured = {c: flats[0][c] for c in family.optional_channels if all(c in f for f in flats)}
+    if unmeasured:
+        family.channels = tuple(c for c in family.channels if c not in unmeasured)
     calib, held, why = _split_station(exps, held_out)
     report = diagnose(family, calib, held, protocol=PROTOCOL, stop=stop)
+    report["experiments"]["unmeasured_channels"] = unmeasured
     report["baseline"]["bounds"] = {p.name: [p.lo, p.hi] for p in family.baseline()}
     report["experiments"]["split"] = why
     # what each log gave the fit to learn from (the regimes the split weighs)
@@ -118,6 +133,11 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     sig = {id(e): excites(e) for e in (*exps, *calib, *held)}
     report["experiments"]["excites"] = {e.name: sorted(sig[id(e)]) for e in exps}
     hidden = unshown(set().union(*(sig[id(e)] for e in calib)), set().union(*(sig[id(e)] for e in held)))
+    for c, value in unmeasured.items():
+        for effect in family.optional_channels[c]:
+            hidden[effect] = {"needs": [f"a measured {c}"], "fitted": False, "experiments": [],
+                              "why": f"no log measures the {c} (it reads {value:g} in every log), so these logs "
+                                     "cannot rule it out"}
     report["experiments"]["unshown"] = hidden
     untested = []
     for c in report["ranking"]:
@@ -127,6 +147,9 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
             c["not_significant_because"] = [*c["not_significant_because"], u["why"]]
             untested.append(c["effect"])
     report["verdict"]["untested"] = [e for e in hidden if e in untested]
+    if unmeasured:
+        report["verdict"]["summary"] += (f"; {', '.join(unmeasured)} read one value in every log, taken as not "
+                                         "measured and left out")
     if report["verdict"]["untested"]:
         report["verdict"]["summary"] += (f"; not shown by the held-out logs, so not ruled out: "
                                          f"{', '.join(report['verdict']['untested'])}")
