@@ -104,6 +104,8 @@ def test_a_clock_counted_from_1970_is_read_from_the_log_start(tmp_path: Path) ->
     (lambda h, r, m: (h, r * np.r_[1, 1, 1, 1, 1, 1e5, 1, 1, 1, 1, 1], m), "column p_a spans"),
     (lambda h, r, m: (h, r * np.r_[1, 1, 1, 1, 1, 1e5, 1, 1, 1, 1, 1], m), "looks like Pa"),
     (lambda h, r, m: (h, r * np.r_[1, 1, 1, 1, 1, 1, 1, 1, 180 / math.pi * 40, 1, 1], m), "looks like degrees"),
+    (lambda h, r, m: (h, r - np.r_[0, 0, 0, 0, 0, 3.0, 0, 0, 0, 0, 0], m),  # a vented chamber's sensor, read gauge
+     "looks like gauge pressure (bar g); add the atmosphere, p_atm_bar = 1.013"),
     (lambda h, r, m: (h, r, {k: v for k, v in m.items() if k != "p_atm_bar"}), "missing key(s) p_atm_bar"),
     (lambda h, r, m: (h, r, m | {"sample_rate_hz": 500.0}), "samples come at 200 Hz"),
     (lambda h, r, m: (h, r, m | {"human": "yes"}), "human = 'yes' must be true or false"),

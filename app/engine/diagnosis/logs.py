@@ -208,6 +208,10 @@ def check_frame(name: str, columns: list[str], data: np.ndarray, meta: dict[str,
             continue
         guess = next((u for f, u in _LIKELY.get(unit, []) if med > hi and 0.05 * hi <= med / f <= hi), None)
         hint = f" — looks like {guess}" if guess else ""
+        atm = float(meta["p_atm_bar"])
+        if unit == "bar abs" and not guess and v.min() < lo and lo <= v.min() + atm and v.max() + atm <= hi:
+            # a sensor read against the room: its zero is the atmosphere
+            hint = f" — looks like gauge pressure (bar g); add the atmosphere, p_atm_bar = {atm:g}"
         raise LogFormatError(f"{name}: column {col} spans {v.min():.4g} … {v.max():.4g}, outside the plausible "
                              f"{lo:g} … {hi:g} {unit}{hint}; the format wants {unit}")
 
