@@ -6,6 +6,7 @@ import json
 import math
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -1015,18 +1016,24 @@ def test_a_single_station_log_is_split_in_time_and_diagnosed(tmp_path: Path,
     assert "held out: hold_closed-1[held-out]" in capsys.readouterr().out
 
 
+def _leak_logs_with_torque(d: Path, torque: Any) -> None:
+    """A short protocol on a rig with the larger vane leak, its torque column rewritten by ``torque``."""
+    rig = PlantParams().with_effects(vane_leakage=MAGNITUDES["vane_leakage"][1])
+    run_protocol(rig, seed=6, scale=0.4, kinds=["hold_closed", "fill_shut", "friction_sweep"], outdir=d)
+    for csv in d.glob("*.csv"):
+        head, *rows = csv.read_text().splitlines()
+        data = np.array([[float(v) for v in r.split(",")] for r in rows])
+        j = head.split(",").index("torque")
+        data[:, j] = torque(data[:, j])
+        csv.write_text(head + "\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in data) + "\n")
+
+
 @pytest.mark.slow
 def test_a_torque_that_reads_one_value_in_every_log_is_taken_as_not_measured(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # a lab without a torque sensor, or a rig model that writes zeros there: fitted as a measured
     # constant, the zeros bent the baseline until a large vane leak went unnamed (GC 0.97 without them)
-    rig = PlantParams().with_effects(vane_leakage=MAGNITUDES["vane_leakage"][1])
-    run_protocol(rig, seed=6, scale=0.4, kinds=["hold_closed", "fill_shut", "friction_sweep"], outdir=tmp_path)
-    for csv in tmp_path.glob("*.csv"):
-        head, *rows = csv.read_text().splitlines()
-        data = np.array([[float(v) for v in r.split(",")] for r in rows])
-        data[:, head.split(",").index("torque")] = 0.0
-        csv.write_text(head + "\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in data) + "\n")
+    _leak_logs_with_torque(tmp_path, np.zeros_like)
     out = tmp_path / "r.json"
     from app.cli import main
 
@@ -1041,3 +1048,36 @@ def test_a_torque_that_reads_one_value_in_every_log_is_taken_as_not_measured(
     assert "no log measures the torque (it reads 0 in every log), so these logs cannot rule it out" in why
     assert "torque read one value in every log, taken as not measured and left out" in r["verdict"]["summary"]
     assert "not measured: torque (reads 0 in every log)" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_torque_written_with_the_other_sign_convention_is_read_reversed_and_said_to_be(tmp_path: Path) -> None:
+    # the torque on the user rather than the user's on the handle: fitted as it came, the balance's
+    # mirror image had presliding friction named beside a vane leak
+    from app.engine.diagnosis.run import diagnose_dir
+
+    _leak_logs_with_torque(tmp_path, np.negative)
+    r = diagnose_dir(tmp_path)
+    sign = r["experiments"]["torque_sign"]
+    assert sign["reversed"] and sign["agreement"] < 0.02 and sign["samples"] > 500, sign
+    assert r["verdict"]["effects"] == ["vane_leakage"], r["verdict"]
+    assert "the torque was read with its sign reversed (it opposed the sign the chamber pressures give it in" in \
+        r["verdict"]["summary"]
+
+
+def test_the_torques_sign_is_read_where_the_pressures_alone_set_it() -> None:
+    fam = RotaryFamily()
+    t = np.arange(0.0, 4.0, 0.005)
+    dp = np.where(t < 2.0, 2.0, -1.5)  # P_a − P_b [bar]: 3.9 and −2.9 N·m of pneumatic torque
+    held = -fam.nominal.vane.torque_per_pa * dp * 1e5 + 0.3 * np.sin(7 * t)  # the user's, holding the handle
+
+    def log(torque: np.ndarray, theta: float = 0.0) -> Experiment:
+        n = len(t)
+        return Experiment("x", t, {}, {"p_a": 3.0 + dp / 2, "p_b": 3.0 - dp / 2, "p_s": np.full(n, 7.0),
+                                       "theta": np.full(n, theta), "omega": np.zeros(n), "torque": torque}, {})
+
+    assert fam.torque_sign_agreement([log(held)]) == (1.0, len(t))
+    assert fam.torque_sign_agreement([log(-held)]) == (0.0, len(t))
+    # at an end stop the stop, not the sensor, takes the pneumatic torque; below the pressures' say, nothing
+    assert fam.torque_sign_agreement([log(-held, theta=fam.nominal.vane.theta_max)]) == (1.0, 0)
+    assert fam.torque_sign_agreement([log(0.1 * np.ones_like(t))]) == (1.0, 0)

@@ -41,6 +41,9 @@ class Experiments(_Open):
         unscored_channels: Channels no held-out sample could score (left out of every fit and of E).
         unmeasured_channels: Channels a rig may lack that read one value in every log, with that value: taken
             as not measured, left out of every fit and of E.
+        torque_sign: Whether the torque was taken with its sign reversed (``reversed``), the share of samples
+            whose sign agrees with the one the chamber pressures give it (``agreement``) and how many such
+            samples there were (``samples``).
     """
 
     calibration: list[str]
@@ -52,6 +55,7 @@ class Experiments(_Open):
     flat_channels: dict[str, dict[str, Num]] = Field(default_factory=dict)
     unscored_channels: list[str] = Field(default_factory=list)
     unmeasured_channels: dict[str, Num] = Field(default_factory=dict)
+    torque_sign: dict[str, Any] | None = None
 
 
 class Gap(_Open):

@@ -629,6 +629,30 @@ class RotaryFamily:
         g = self.nominal.vane
         return np.asarray((theta >= g.theta_max - STOP_TOL_RAD) | (theta <= g.theta_min + STOP_TOL_RAD))
 
+    def torque_sign_agreement(self, exps: list[Experiment], min_nm: float = 2.0) -> tuple[float, int]:
+        """How often the measured torque has the sign the chamber pressures give it.
+
+        Where the pneumatic torque −A_v·r·(P_a − P_b) exceeds ``min_nm`` [N·m]
+        (past what static friction, ≈ 1.3 N·m, can hold against) and the
+        measured torque is not near zero, the torque balance leaves its sign
+        to the pressures, whatever the motion. A rig that writes the torque
+        with the other sign convention (the torque on the user rather than
+        the user's on the handle) agrees almost never.
+
+        Returns:
+            The fraction of such samples that agree, and how many there were
+            (none away from the end stops: 1.0 and 0).
+        """
+        agree = n = 0
+        for e in exps:
+            ch = e.channels
+            pneu = -self.nominal.vane.torque_per_pa * (ch["p_a"] - ch["p_b"]) * BAR
+            tq = ch["torque"]
+            use = (np.abs(pneu) > min_nm) & (np.abs(tq) > 0.25 * min_nm) & ~self.at_stops(ch["theta"])
+            n += int(use.sum())
+            agree += int((np.sign(tq[use]) == np.sign(pneu[use])).sum())
+        return (agree / n if n else 1.0), n
+
     def measured(self, prep: RotaryPrep) -> dict[str, np.ndarray]:
         k = prep.keep
         out = {"p_a": prep.p_meas["p_a"][k], "p_b": prep.p_meas["p_b"][k], "p_s": prep.p_meas["p_s"][k],

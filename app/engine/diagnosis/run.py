@@ -116,6 +116,15 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     if linear:
         raise LogFormatError(f"{d}: {', '.join(linear)} come from the linear rig; the replay family covers "
                              "the rotary rig (diagnose linear-rig logs in a directory of their own once it does)")
+    # a rig that writes the torque with the other sign convention (the torque on the user, not the
+    # user's on the handle) had the balance fitted against its mirror image: a vane leak came out with
+    # presliding friction beside it. Where the pressures alone set the sign and the log says the
+    # opposite almost everywhere, the sign is taken reversed, and the report says so
+    agreement, samples = family.torque_sign_agreement(exps)
+    reversed_torque = samples >= TORQUE_SIGN_MIN_SAMPLES and agreement < TORQUE_SIGN_AGREEMENT
+    if reversed_torque:
+        for e in exps:
+            e.channels["torque"] = -e.channels["torque"]
     # a channel the rig may lack that reads one value in every log measures nothing: fitted as a
     # constant it bends the baseline (a torque read as 0 throughout hid a vane leak that closes 0.97
     # of the gap without it), so it leaves the diagnosis and the report says so
@@ -126,6 +135,7 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     calib, held, why = _split_station(exps, held_out)
     report = diagnose(family, calib, held, protocol=PROTOCOL, stop=stop)
     report["experiments"]["unmeasured_channels"] = unmeasured
+    report["experiments"]["torque_sign"] = {"reversed": reversed_torque, "agreement": agreement, "samples": samples}
     report["baseline"]["bounds"] = {p.name: [p.lo, p.hi] for p in family.baseline()}
     report["experiments"]["split"] = why
     # what each log gave the fit to learn from (the regimes the split weighs)
@@ -150,6 +160,10 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     if unmeasured:
         report["verdict"]["summary"] += (f"; {', '.join(unmeasured)} read one value in every log, taken as not "
                                          "measured and left out")
+    if reversed_torque:
+        report["verdict"]["summary"] += (f"; the torque was read with its sign reversed (it opposed the sign the "
+                                         f"chamber pressures give it in {100 * (1 - agreement):.0f} % of {samples} "
+                                         "samples where they alone set it)")
     if report["verdict"]["untested"]:
         report["verdict"]["summary"] += (f"; not shown by the held-out logs, so not ruled out: "
                                          f"{', '.join(report['verdict']['untested'])}")
@@ -179,6 +193,13 @@ def _split_station(exps: list[Experiment],
     return ([e for e in exps if all(e is not h for h in held)], held,
             "the last repetition of every experiment run more than once")
 
+
+TORQUE_SIGN_AGREEMENT = 0.1
+"""Below this share of samples agreeing with the pressures' sign, the torque is taken reversed
+(:meth:`~app.engine.diagnosis.rotary.RotaryFamily.torque_sign_agreement`); a right sign agrees in
+nearly all of them, the mirror image in nearly none."""
+TORQUE_SIGN_MIN_SAMPLES = 100
+"""Fewer such samples than this (a protocol that never holds the chambers 1 bar apart) decide nothing."""
 
 MOVING_RAD_S = 0.1
 """Speed above which a sample counts as motion for :func:`excites` [rad/s]."""
