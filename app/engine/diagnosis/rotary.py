@@ -641,7 +641,7 @@ class RotaryFamily:
 
         Returns:
             The fraction of such samples that agree, and how many there were
-            (none away from the end stops: 1.0 and 0).
+            (1.0 and 0 when there is none).
         """
         agree = n = 0
         for e in exps:

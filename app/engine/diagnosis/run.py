@@ -163,7 +163,8 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     if reversed_torque:
         report["verdict"]["summary"] += (f"; the torque was read with its sign reversed (it opposed the sign the "
                                          f"chamber pressures give it in {100 * (1 - agreement):.0f} % of {samples} "
-                                         "samples where they alone set it)")
+                                         "samples where they alone set it; if the torque's sign is right, p_a and "
+                                         "p_b are swapped)")
     if report["verdict"]["untested"]:
         report["verdict"]["summary"] += (f"; not shown by the held-out logs, so not ruled out: "
                                          f"{', '.join(report['verdict']['untested'])}")
