@@ -499,6 +499,9 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
         if box.get_attribute("value") != "hold_closed":
             box.uncheck()
     page.fill("#rscale", "0.2")
+    # a short protocol is allowed, and said to pin the baseline down less
+    expect(page.locator("#rscale-note")).to_be_visible()
+    expect(page.locator("#rscale-note")).to_contain_text("A protocol 0.2 × as long pins the model's nominal values")
     page.fill("#rperson", "P-021")
     page.click("#go")
     expect(page.locator("#msg")).to_contain_text("hold_closed, repetition", timeout=15_000)
