@@ -1118,8 +1118,8 @@ def recalibration(family: Family, base: Fit, model: Candidate | None = None) -> 
             + ")" for n in far)
         note = (f"the recalibration moved {what}; that is more than a tolerance on a nominal value explains "
                 f"(over {FAR_FACTOR:g} × or under 1/{FAR_FACTOR:g} ×), so the baseline is standing in for something")
-        back = [n for n in far if (m := by[n]["in_model"]) is not None
-                and by[n]["nominal"] / FAR_FACTOR <= m <= by[n]["nominal"] * FAR_FACTOR]
+        # brought back: the verdict's value is no longer far by the same rule (_far)
+        back = [n for n in far if by[n]["in_model"] is not None and not by[n]["in_model_far"]]
         if model is not None and back:
             note += (f". With {model.effect} in the model, " + "; ".join(
                 f"{by[n]['meaning'] or n} comes back to {by[n]['in_model']:.3g}" for n in back))
