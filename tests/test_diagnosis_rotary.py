@@ -502,7 +502,10 @@ def test_cwrr_protocol_draws_errors_parameter_by_parameter(tmp_path: Path,
 
     assert main(["protocol", str(tmp_path), "--param-error", "0.2", "--errors", "each", "--scale", "0.2",
                  "--effect", "vane_leakage"]) == 0
-    assert "14 logs written" in capsys.readouterr().out and len(list(tmp_path.glob("*.csv"))) == 14
+    out = capsys.readouterr().out
+    assert "14 logs written" in out and len(list(tmp_path.glob("*.csv"))) == 14
+    # a short protocol is said to pin the nominal values down less where its length is chosen
+    assert "a protocol 0.2 × as long pins the model's nominal values down less" in out
     with pytest.raises(SystemExit):
         main(["protocol", str(tmp_path / "x"), "--errors", "every"])
     assert "invalid choice: 'every'" in capsys.readouterr().err and not (tmp_path / "x").exists()

@@ -324,7 +324,9 @@ class ProtocolRunRequest(Documented):
     Attributes:
         repetitions: Runs of every experiment (the last one of each is held out).
         scale: Duration factor (1 ≈ 83 s of logs per repetition; each experiment
-            also waits 1.5 s while the chambers reach its start pressure).
+            also waits 1.5 s while the chambers reach its start pressure). Under 1 the
+            logs pin the model's nominal values down less, and the recalibration may take
+            values far from nominal (the report flags them); 1 or more for a diagnosis to act on.
         kinds: Experiments to run (default all seven, in the protocol's order).
         person: Pseudonymous id of the person at the handle (no names); three of the
             experiments have them move it.

@@ -46,7 +46,9 @@ class ProtocolSource(Documented):
             one), or ``each``, one per parameter (every friction-table entry, each
             PRV capacity and dead volume), which the baseline can only approximate.
         seed: Seed of the parameter errors and the sensor noise.
-        scale: Duration factor (1 ≈ 83 s of logs per repetition).
+        scale: Duration factor (1 ≈ 83 s of logs per repetition). Under 1 the logs pin
+            the model's nominal values down less, and the recalibration may take values
+            far from nominal (the report flags them); 1 or more for a diagnosis to act on.
     """
 
     effects: list[EffectName] = Field(default_factory=list, max_length=9)
