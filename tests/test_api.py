@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from app.engine.hardware.base import Measurement
 from app.storage import Store
 from tests.conftest import wait_engine
 
@@ -196,7 +197,7 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
 
 def test_runs_are_listed_by_person_and_kind_and_a_misspelt_filter_is_refused(client: TestClient) -> None:
     client.post("/api/engine/connect")
-    ids = {}
+    ids: dict[str, list[int]] = {}
     for person in ("P-007", "P-008", "P-007"):
         r = client.post("/api/engine/start", json={"scenario": "SC-1", "target_nm": 1.0, "person": person})
         assert r.status_code == 200, r.text
@@ -295,7 +296,7 @@ def test_an_engine_error_latches_a_fault_until_cleared(tmp_path: Path) -> None:
         name = "flaky"
         reads = 0
 
-        def read(self):  # type: ignore[no-untyped-def]
+        def read(self) -> Measurement:
             Flaky.reads += 1
             if Flaky.reads > 50:
                 raise OSError("encoder cable unplugged")
@@ -427,8 +428,8 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
             assert all(np.all(np.isfinite(np.asarray(a))) for a in h.data), h
         assert np.asarray(plots.h_torque.data[2])[-1] == 1.2 and np.asarray(plots.h_press.data[2])[0] == 2.9
         # no new sample, nothing sent: an idle station costs the viewers nothing
-        sent = []
-        plots.server._websock_server.queue_message = sent.append  # type: ignore[method-assign]
+        sent: list[object] = []
+        plots.server._websock_server.queue_message = sent.append  # type: ignore[assignment]
         plots.publish()
         assert sent == []
         st.live.append((400 * 0.005, 4.0, 1.2, 2.9, 3.1, 3.0, 3.0, 0.1, 0.2))  # same angle: charts only

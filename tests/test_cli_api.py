@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
@@ -34,7 +35,7 @@ def test_sim_refuses_bad_pressure_with_gui_message() -> None:
     assert "Working pressure can be min. 1 bar and max. 8 bar!" in r.stderr
 
 
-def test_sim_writes_run_log(tmp_path) -> None:
+def test_sim_writes_run_log(tmp_path: Path) -> None:
     r = _cwrr("sim", "--duration", "2", "--log-dir", str(tmp_path), "--name", "w1", "--json")
     assert r.returncode == 0, r.stderr
     head = (tmp_path / "w1.csv").read_text().splitlines()[0]
@@ -43,7 +44,7 @@ def test_sim_writes_run_log(tmp_path) -> None:
     assert meta["rig"] == "rotary" and meta["human"] is True
 
 
-def test_health_and_openapi_with_lifespan(tmp_path) -> None:
+def test_health_and_openapi_with_lifespan(tmp_path: Path) -> None:
     app = create_app(Settings(rate_hz=200.0, data_dir=str(tmp_path), viser_port=0))
     with TestClient(app) as c:
         import time
@@ -62,7 +63,7 @@ def test_health_and_openapi_with_lifespan(tmp_path) -> None:
         assert c.get("/").status_code == 200
 
 
-def test_every_field_of_the_api_says_what_it_is_in_the_openapi_schema(tmp_path) -> None:
+def test_every_field_of_the_api_says_what_it_is_in_the_openapi_schema(tmp_path: Path) -> None:
     # a researcher scripting the API reads /docs; the docstrings' Attributes are the text
     app = create_app(Settings(data_dir=str(tmp_path), viser_port=0))
     spec = app.openapi()

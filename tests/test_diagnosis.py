@@ -315,7 +315,7 @@ class _Line:
     """y = a·x: the smallest family, for what the core does with samples it must not score."""
 
     name = "line"
-    channels = ("y",)
+    channels: tuple[str, ...] = ("y",)
     candidates: tuple[str, ...] = ()
     def __init__(self) -> None:
         self.relevance = {"y": 0.0}
@@ -381,7 +381,7 @@ class _ToneOffset(_GriddedTone):
     """A tone plus an offset candidate that restarts the frequency from nominal (like a pneumatic
     candidate restarts the flows: see RotaryFamily.rebase)."""
 
-    candidates = ("offset",)
+    candidates: tuple[str, ...] = ("offset",)
     grid_points = 5
 
     def effect(self, name: str) -> list[Param]:
@@ -435,7 +435,7 @@ class _SlopeOrOffset(_Line):
     sign of x, both add to y (an offset c, the per-sign slope a·k·|x|); only near x = 0 do they differ.
     """
 
-    candidates = ("offset",)
+    candidates: tuple[str, ...] = ("offset",)
 
     def effect(self, name: str) -> list[Param]:
         return {"offset": [Param("offset.c", 0.0, -2.0, 2.0, "-")],
@@ -851,7 +851,7 @@ def test_a_dynamic_effect_whose_gain_stays_without_its_dynamics_is_credited_to_i
         assert r["verdict"]["effects"] == []
 
 
-class _ScaledFamily:
+class _ScaledFamily(_Line):
     """Just enough of a family for :func:`core.recalibration`: two nominal scales, one form parameter."""
 
     nominal_scales = ("volume_scale", "flow_scale")

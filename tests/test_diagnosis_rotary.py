@@ -160,7 +160,12 @@ def test_parameter_sets_that_replay_alike_are_replayed_once_per_log(nominal_logs
     preps = [fam.prepare(e) for e in nominal_logs[:3]]
     calls: list[str] = []
     real = fam._replay
-    monkeypatch.setattr(fam, "_replay", lambda p, x, eff: calls.append(p.name) or real(p, x, eff))
+
+    def counted(p: Any, x: dict[str, float], eff: tuple[str, ...]) -> Any:
+        calls.append(p.name)
+        return real(p, x, eff)
+
+    monkeypatch.setattr(fam, "_replay", counted)
     x = {p.name: p.x0 for p in fam.baseline()}
     grid = [x | {"inertia.extra": v} for v in (0.0, 0.01, 0.02, 0.04)]
     fam.prefetch(preps, grid, ("inertia",))
@@ -177,7 +182,12 @@ def test_a_jacobians_points_are_replayed_in_one_batch(nominal_logs: list, monkey
     preps = [fam.prepare(e) for e in nominal_logs[:2]]
     sizes: list[int] = []
     real = fam.prefetch
-    monkeypatch.setattr(fam, "prefetch", lambda p, xs, eff: sizes.append(len(xs)) or real(p, xs, eff))
+
+    def counted(p: Any, xs: list[dict[str, float]], eff: tuple[str, ...]) -> None:
+        sizes.append(len(xs))
+        real(p, xs, eff)
+
+    monkeypatch.setattr(fam, "prefetch", counted)
     fit(fam, preps, ())
     assert len(fam.baseline()) in sizes, sizes
 
@@ -771,7 +781,8 @@ def test_friction_that_does_not_follow_the_pressures_is_recalibrated() -> None:
     base_rig = perturbed(214)
     fr = base_rig.friction
     i = fr.pw_bar.index(3.0)
-    row = {n: (getattr(fr, n)[i],) for n in ("ts_ccw", "tc_ccw", "ws_ccw", "b_ccw", "ts_cw", "tc_cw", "ws_cw", "b_cw")}
+    row: dict[str, Any] = {n: (getattr(fr, n)[i],)
+                           for n in ("ts_ccw", "tc_ccw", "ws_ccw", "b_ccw", "ts_cw", "tc_cw", "ws_cw", "b_cw")}
     rig = replace(base_rig, friction=replace(fr, pw_bar=(3.0,), **row))
     _, fam, preps, scales = _calibration_once(rig, 214)
     base = recalibrate(fam, preps, scales)

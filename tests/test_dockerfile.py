@@ -136,9 +136,9 @@ def test_the_install_steps_work_in_a_fresh_venv(tmp_path: Path) -> None:
         deadline = time.monotonic() + 180
         ok = False
         while time.monotonic() < deadline and server.poll() is None:
-            r = subprocess.run(check.replace("python ", f"{venv / 'bin' / 'python'} ", 1), shell=True, env=env,
-                               capture_output=True, timeout=10)
-            if r.returncode == 0:
+            probe = subprocess.run(check.replace("python ", f"{venv / 'bin' / 'python'} ", 1), shell=True, env=env,
+                                   capture_output=True, timeout=10)
+            if probe.returncode == 0:
                 ok = True
                 break
             time.sleep(1.0)

@@ -27,7 +27,7 @@ META = {"rig": "rotary", "sample_rate_hz": 200.0, "p_atm_bar": 1.01325, "working
         "experiment": "test", "human": False}
 
 
-def test_hold_command_reaches_prv_set_pressures(tmp_path) -> None:
+def test_hold_command_reaches_prv_set_pressures(tmp_path: Path) -> None:
     clock = SimClock()
     rig = SimulatedRig(clock, period=0.005)
     rec = RunLogWriter(tmp_path, "hold", META)
@@ -116,14 +116,14 @@ def test_run_workout_rejects_rate_not_dividing_substep() -> None:
         run_workout(duration=1.0, rate_hz=300.0)
 
 
-def test_runlog_rejects_bad_names_and_missing_meta(tmp_path) -> None:
+def test_runlog_rejects_bad_names_and_missing_meta(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="log name"):
         RunLogWriter(tmp_path, "../evil", META)
     with pytest.raises(ValueError, match="lacks rig"):
         RunLogWriter(tmp_path, "ok", {k: v for k, v in META.items() if k != "rig"})
 
 
-def test_runlog_is_durable_before_close(tmp_path) -> None:
+def test_runlog_is_durable_before_close(tmp_path: Path) -> None:
     w = RunLogWriter(tmp_path, "live", META, flush_every_s=0.0)
     for i in range(10):
         w.append([i * 0.005] + [0.0] * 10)
@@ -134,7 +134,8 @@ def test_runlog_is_durable_before_close(tmp_path) -> None:
     assert json.loads((tmp_path / "live.json").read_text())["status"] == "interrupted"
 
 
-def test_a_stalled_fsync_does_not_hold_rows_back_from_the_kernel(tmp_path, monkeypatch) -> None:
+def test_a_stalled_fsync_does_not_hold_rows_back_from_the_kernel(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     """Issue 7 item 5: a disk busy elsewhere can stall ``fsync`` for most of a second (a CI
     machine installing packages beside the station did: a killed server lost 1.05 s). The
     threaded writer keeps handing rows to the kernel, where a killed process's rows survive."""
@@ -169,7 +170,7 @@ def test_a_stalled_fsync_does_not_hold_rows_back_from_the_kernel(tmp_path, monke
     assert len((tmp_path / "busy.csv").read_text().splitlines()) == 21
 
 
-def test_a_log_written_late_in_a_long_session_keeps_every_sample_time_apart(tmp_path) -> None:
+def test_a_log_written_late_in_a_long_session_keeps_every_sample_time_apart(tmp_path: Path) -> None:
     """The station's clock counts from connect: after a morning of therapy a 500 Hz run's times
     are ~10⁴ s, where six significant digits would round neighbouring samples together (and the
     diagnosis would refuse the log for time not increasing)."""
@@ -219,7 +220,7 @@ def test_linear_rig_extends_under_pressure_difference() -> None:
     assert 0.0 <= x[pl.I_POS] <= 0.300
 
 
-def test_connect_settles_the_heap_before_the_loop_runs(tmp_path, monkeypatch) -> None:
+def test_connect_settles_the_heap_before_the_loop_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A collection of the oldest generation holds the interpreter lock while it scans every
     object (≈ 280 000 in a served station; 290–400 ms here): connect collects and freezes the
     survivors before the loop starts, so a later full collection only visits what was allocated
@@ -411,7 +412,7 @@ def test_the_hardware_speed_estimator_divides_by_the_time_between_samples() -> N
     est, per = SpeedEstimator(25.0, 0.005), SpeedEstimator(25.0, 0.005)
     t = np.arange(0.0, 0.5, 0.005)
     for ti in t:  # 0.4 rad/s, on time: the same with or without the samples' times
-        assert est.update(0.4 * ti, float(ti)) == pytest.approx(per.update(0.4 * ti), abs=1e-12)
+        assert est.update(float(0.4 * ti), float(ti)) == pytest.approx(per.update(float(0.4 * ti)), abs=1e-12)
     assert est.update(0.4 * (t[-1] + 0.065), float(t[-1] + 0.065)) == pytest.approx(0.4, rel=1e-3)
     assert per.update(0.4 * (t[-1] + 0.065)) > 7 * 0.4  # a period's step: 13 × the speed, half of it filtered
     est.reset()

@@ -233,7 +233,11 @@ def test_the_quanser_board_clock_sets_the_loop_period_in_task_mode() -> None:
     card.analog_in.update({5: 1.5, 2: 1.0, 7: 4.0, 0: 0.55})
     slept: list[float] = []
     real_sleep = clock.sleep_until
-    clock.sleep_until = lambda t: (slept.append(t), real_sleep(t))  # type: ignore[method-assign]
+    def noted(t: float) -> None:
+        slept.append(t)
+        real_sleep(t)
+
+    clock.sleep_until = noted  # type: ignore[method-assign]
     eng = Engine(rig, ctl, clock, 200.0)
     t0 = time.monotonic()
     eng.run_for(1.0)  # 200 periods of the board's clock

@@ -26,6 +26,7 @@ from app.engine.hardware.config import HardwareConfig, ModbusLink, load_config, 
 from app.engine.hardware.modbus import ModbusRig, PlantServer, counts_to_volts, serve_simulated_plant, volts_to_counts
 from app.engine.hardware.sim import SimulatedRig
 from app.engine.human import HumanProgram
+from app.engine.ident.procedure import Script
 from app.engine.loop import WallClock
 from app.engine.station import RunSpec, Station
 
@@ -326,7 +327,7 @@ def test_a_closed_link_mid_run_ends_in_the_safe_state_and_reconnecting_resumes(t
     factory = HILFactory()
     st = Station(factory, data_dir=tmp_path)
 
-    def run_paced() -> str:
+    def run_paced() -> int | None:
         st.connect()
         run_id = st.start(RunSpec(scenario="SC-1", controller="pid", target_nm=1.2))
         time.sleep(3.0)
@@ -443,7 +444,7 @@ def _linear_tests_over(through_modbus: bool) -> Any:
     from app.engine.params import PlantParams
 
     class FewTests(LinearFrictionProcedure):
-        def script(self):  # type: ignore[no-untyped-def]
+        def script(self) -> Script:
             for d in ("extension", "retraction"):
                 yield from self.static_test(d)
             for d in ("extension", "retraction"):

@@ -20,7 +20,7 @@ from app.engine import tables
 from app.engine.ident import gui_rules as gr
 from app.engine.ident.fitting import fit_friction, runs_test_p, stribeck
 from app.engine.ident.linear import LinearFrictionProcedure
-from app.engine.ident.procedure import Procedure
+from app.engine.ident.procedure import Procedure, Script
 from app.engine.ident.rotary import RotaryFrictionProcedure
 from app.engine.ident.runner import (
     identify_linear_sim,
@@ -190,7 +190,7 @@ def test_cancel_vents_the_rig_and_keeps_the_data_so_far() -> None:
 
 def test_a_failing_script_still_vents() -> None:
     class Boom(Procedure):
-        def script(self):  # type: ignore[no-untyped-def]
+        def script(self) -> Script:
             from app.engine.hardware.base import Command
 
             yield from self.hold(Command(3.0, 3.0, 0.0, 10.0), 0.2)
@@ -240,7 +240,7 @@ def test_linear_identification_recovers_table_4_5_c1() -> None:
 class _FixedDrive(LinearFrictionProcedure):
     """Dynamic runs at the ends of Eq 3.18/3.19's ranges: u_a = 4.2, 5.0 V, u_b = 5.0, 6.0 V."""
 
-    def script(self):  # type: ignore[no-untyped-def]
+    def script(self) -> Script:
         draws = iter((0.0, 1.0, 0.0, 1.0))
         self.rng = type("Draws", (), {"random": staticmethod(lambda: next(draws))})()
         for d in ("extension", "extension", "retraction", "retraction"):

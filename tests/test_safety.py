@@ -14,6 +14,7 @@ import math
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -164,7 +165,7 @@ def _engine(tmp_path: Path, fault: dict | None, duration: float = 4.5) -> tuple[
     return eng, safety, log.csv_path, truth
 
 
-FAULTS = [
+FAULTS: list[tuple[dict[str, Any], set[str], float]] = [
     ({"kind": "nan", "channel": "p_a"}, {"sensor_nan"}, PERIOD),
     ({"kind": "dropout", "channel": "p_a"}, {"sensor_range"}, PERIOD),
     ({"kind": "dropout", "channel": "torque"}, {"sensor_stuck"}, 0.5 + 2 * PERIOD),
@@ -180,7 +181,7 @@ FAULTS = [
 @pytest.mark.parametrize(("fault", "codes", "latency"), FAULTS, ids=[f[0]["kind"] + "-" + str(f[0].get("channel", ""))
                                                                     for f in FAULTS])
 def test_every_injected_fault_ends_in_the_safe_state_within_one_period_with_the_log_intact(
-        tmp_path: Path, fault: dict, codes: set[str], latency: float) -> None:
+        tmp_path: Path, fault: dict[str, Any], codes: set[str], latency: float) -> None:
     eng, safety, csv_path, truth = _engine(tmp_path, fault)
     f = safety.fault
     assert f is not None and f.code in codes, f
@@ -323,7 +324,9 @@ def test_a_run_started_right_after_one_that_ended_far_from_neutral_does_not_yank
             assert time.monotonic() < deadline and st.state.value == "running"
             time.sleep(0.05)
         st.stop()
-        t_start = float(st.live.latest()[0])
+        newest = st.live.latest()
+        assert newest is not None
+        t_start = float(newest[0])
         st.start(RunSpec(scenario="SC-1", controller="pid", target_nm=1.2))
         time.sleep(5.0)  # the return to neutral (≤ 4 s from ±1.5 rad) and the program's start
         assert st.state.value == "running" and st.safety.fault is None, st.safety.fault

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
+from pydantic import SecretStr
 
 from app.api.main import create_app
 from app.api.settings import Settings
@@ -160,8 +161,9 @@ def test_behind_a_port_mapping_or_a_proxy_the_link_names_the_public_address(tmp_
     from websockets.exceptions import InvalidStatus
 
     vport = free_port()
-    s = Settings(data_dir=str(tmp_path), viser_port=vport, auto_connect=False, admin_token=ADMIN,
-                 therapist_token=THERAPIST, viser_public_url="https://plots.lab.example:9443/")  # type: ignore[arg-type]
+    s = Settings(data_dir=str(tmp_path), viser_port=vport, auto_connect=False,
+                 admin_token=SecretStr(ADMIN), therapist_token=SecretStr(THERAPIST),
+                 viser_public_url="https://plots.lab.example:9443/")
     with TestClient(create_app(s)) as c:
         url = c.get("/api/viser", headers={"Authorization": f"Bearer {THERAPIST}"}).json()["url"]
         assert url.startswith("https://plots.lab.example:9443/?ticket="), url

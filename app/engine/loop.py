@@ -20,7 +20,6 @@ from typing import Protocol
 import numpy as np
 
 from app.engine.hardware.base import Command, HardwareInterface, Measurement
-from app.engine.runlog import RunLogWriter
 
 
 class Clock(Protocol):
@@ -68,6 +67,15 @@ class WallClock:
                 return
             if rem > 0.0005:
                 time.sleep(rem - 0.0003)
+
+
+class Recorder(Protocol):
+    """Receives every period's log row: t, z_a, z_b, u_a, u_b, p_a, p_b, p_s, theta, omega, torque
+    (a :class:`~app.engine.runlog.RunLogWriter`, or a procedure keeping its own logs)."""
+
+    def append(self, row: tuple[float, ...]) -> None:
+        """Take one period's row (called inside the period: must not block)."""
+        ...
 
 
 class Controller(Protocol):
@@ -280,7 +288,7 @@ class Engine:
         rate_hz: float = 200.0,
         safety: Safety | None = None,
         estimator: Estimator | None = None,
-        recorder: RunLogWriter | None = None,
+        recorder: Recorder | None = None,
         on_tick: Callable[[Measurement, Command], None] | None = None,
         realtime: bool = False,
         stall_s: float = 1.0,

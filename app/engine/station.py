@@ -40,7 +40,7 @@ from app.engine.control.interaction import InteractionController
 from app.engine.hardware.base import RIG_KINDS, SAFE_COMMAND, Command, HardwareInterface, Measurement
 from app.engine.hardware.config import HardwareConfig, save_config
 from app.engine.hardware.factory import make_factory
-from app.engine.loop import REFREEZE_S, Controller, Engine, WallClock, refreeze_heap, settle_heap
+from app.engine.loop import REFREEZE_S, Controller, Engine, Recorder, WallClock, refreeze_heap, settle_heap
 from app.engine.params import ParameterError, PlantParams, SensorParams, check_range
 from app.engine.runlog import RunLogWriter
 from app.engine.safety import SafetyLimits, SafetySupervisor
@@ -572,7 +572,7 @@ class Station:
 
     def estimate(self, procedure: Any, kind: RunKind, fit: Callable[[Any], dict[str, Any]],
                  rig: str = "rotary", spec: dict[str, Any] | None = None,
-                 rate_hz: float | None = None, recorder: Any = None) -> int | None:
+                 rate_hz: float | None = None, recorder: Recorder | None = None) -> int | None:
         """idle → identifying: run an identification procedure at its rate.
 
         Args:
