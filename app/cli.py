@@ -300,9 +300,12 @@ def _serve(args: argparse.Namespace) -> int:
 
     try:
         # a flag given wins over its CWRR_* environment variable; one not given leaves that in force
-        extra = {k: v for k, v in (("hardware", args.hardware), ("data_dir", args.data_dir),
-                                   ("viser_public_url", args.viser_public_url)) if v}
-        settings = Settings(host=args.host, port=args.port, viser_port=args.viser_port, **extra)
+        # (the address flags defaulted to 127.0.0.1:8000 and overrode CWRR_HOST / CWRR_PORT, which the
+        # docs list as settings, without a word)
+        given = (("host", args.host), ("port", args.port), ("viser_port", args.viser_port),
+                 ("hardware", args.hardware), ("data_dir", args.data_dir),
+                 ("viser_public_url", args.viser_public_url))
+        settings = Settings(**{k: v for k, v in given if v not in (None, "")})
     except ValidationError as exc:
         raise ValueError(validation_reasons(exc, "settings")) from None
     if settings.start_engine and settings.auto_connect:
@@ -314,7 +317,7 @@ def _serve(args: argparse.Namespace) -> int:
         why = make_server_realtime()
         if why:
             print(f"cwrr serve: normal scheduling ({why}); /api/health reports the loop's jitter", file=sys.stderr)
-    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
     return 0
 
 
@@ -483,8 +486,8 @@ def _protocol(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``cwrr`` and ``python -m app``."""
+def build_parser() -> argparse.ArgumentParser:
+    """The ``cwrr`` command line: one subcommand per job, each calling its function (``fn``)."""
     ap = argparse.ArgumentParser(prog="cwrr", description="CWRR lab station")
     sub = ap.add_subparsers(dest="cmd", required=True)
     s = sub.add_parser("sim", help="simulate a default isotonic workout faster than real time")
@@ -564,9 +567,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     q.add_argument("--seed", type=int, default=0)
     q.set_defaults(fn=_protocol)
     v = sub.add_parser("serve", help="start the lab station server on the simulated plant")
-    v.add_argument("--host", default="127.0.0.1")
-    v.add_argument("--port", type=int, default=8000)
-    v.add_argument("--viser-port", type=int, default=8080)
+    v.add_argument("--host", default=None, help="bind address (default: $CWRR_HOST, else 127.0.0.1; any other "
+                   "than loopback needs a token, see CWRR_ADMIN_TOKEN)")
+    v.add_argument("--port", type=int, default=None, help="HTTP port (default: $CWRR_PORT, else 8000)")
+    v.add_argument("--viser-port", type=int, default=None,
+                   help="port of the live plots, 0 for none (default: $CWRR_VISER_PORT, else 8080)")
     v.add_argument("--hardware", default="", help="YAML hardware configuration (default: the simulator)")
     v.add_argument("--data-dir", default="", help="where run logs and the SQLite store live (default: "
                    "$CWRR_DATA_DIR, else ./data)")
@@ -578,7 +583,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     mp.add_argument("--port", type=int, default=5020)
     mp.add_argument("--hardware", default="", help="YAML hardware configuration (register layout and scaling)")
     mp.set_defaults(fn=_modbus_plant)
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``cwrr`` and ``python -m app``."""
+    args = build_parser().parse_args(argv)
     try:
         return int(args.fn(args))
     except ValueError as exc:  # includes ParameterError: the message names the parameter

@@ -84,6 +84,31 @@ def test_cwrr_serve_on_all_interfaces_without_a_token_exits_with_the_reason(
     assert "without authentication" in err and "CWRR_ADMIN_TOKEN" in err
 
 
+def test_cwrr_serve_takes_its_address_from_the_environment_unless_a_flag_names_it(
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """CWRR_HOST, CWRR_PORT and CWRR_VISER_PORT are settings like the others; the flags' own defaults
+    (127.0.0.1, 8000, 8080) had overridden them without a word."""
+    import uvicorn
+
+    served: list[tuple[str, int, int]] = []
+    monkeypatch.setattr(uvicorn, "run", lambda app, host, port, log_level: served.append(
+        (host, port, app.state.settings.viser_port)))
+    monkeypatch.setenv("CWRR_AUTO_CONNECT", "false")  # nothing to compile or connect: only the address is looked at
+    monkeypatch.setenv("CWRR_REALTIME", "false")
+    monkeypatch.setenv("CWRR_DATA_DIR", str(tmp_path))
+    for k in ("CWRR_ADMIN_TOKEN", "CWRR_THERAPIST_TOKEN"):
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setenv("CWRR_HOST", "0.0.0.0")
+    assert cli_main(["serve"]) == 2 and served == []  # the environment's all-interfaces bind, refused without a token
+    assert "without authentication" in capsys.readouterr().err
+    monkeypatch.setenv("CWRR_ADMIN_TOKEN", ADMIN)
+    monkeypatch.setenv("CWRR_PORT", "8123")
+    monkeypatch.setenv("CWRR_VISER_PORT", "0")
+    assert cli_main(["serve"]) == 0
+    assert cli_main(["serve", "--host", "127.0.0.1", "--port", "8124", "--viser-port", "8081"]) == 0  # flags win
+    assert served == [("0.0.0.0", 8123, 0), ("127.0.0.1", 8124, 8081)]
+
+
 def test_cwrr_serve_refuses_a_bad_public_url_flag_with_the_reason(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["serve", "--port", "1", "--viser-public-url", "ftp://station:9080"]) == 2
     err = capsys.readouterr().err

@@ -62,3 +62,26 @@ def test_every_saved_figure_is_strict_json(path: Path) -> None:
         raise AssertionError(f"{path.name}: bare {token}, which JSON.parse and jq refuse")
 
     json.loads(path.read_text(encoding="utf-8"), parse_constant=refuse)
+
+
+def test_the_stations_settings_table_lists_every_setting_and_flag() -> None:
+    """A lab configures the station from docs/station.md's table: every field of ``Settings`` is
+    there as its environment variable, with ``cwrr serve``'s flag where it has one."""
+    import argparse
+
+    from app.api.settings import Settings
+    from app.cli import build_parser
+
+    text = (ROOT / "docs" / "station.md").read_text(encoding="utf-8")
+    section = text.split("\n## Settings\n", 1)[1].split("\n## ", 1)[0]
+    rows: dict[str, str] = {}
+    for line in section.splitlines():
+        cells = [c.strip().strip("`") for c in line.strip().strip("|").split("|")]
+        if line.startswith("| `CWRR_"):
+            rows[cells[0]] = cells[1]
+    assert set(rows) == {f"CWRR_{name.upper()}" for name in Settings.model_fields}
+    # the serve flags, read off the parser itself
+    ap = build_parser()
+    sub = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))
+    flags = {o for a in sub.choices["serve"]._actions for o in a.option_strings} - {"-h", "--help"}
+    assert {f for f in rows.values() if f} == flags
