@@ -570,7 +570,30 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     rep["baseline"]["recalibration"]["params"][2] |= {"in_model": 0.36, "in_model_far": True}
     rep["verdict"]["baseline_beaten"] = {"by": "heat_transfer", "gap_closure": -0.46, "rebased_gap_closure": 0.202,
                                          "switched_off": False, "rereferenced": True}
+    # the rig's own logs were written the way the format says: nothing was read reversed
+    assert not stored["experiments"]["pressure_order"]["swapped"], stored["experiments"]["pressure_order"]
+    assert not stored["experiments"]["angle_sign"]["reversed"], stored["experiments"]["angle_sign"]
+    assert not stored["experiments"]["torque_sign"]["reversed"], stored["experiments"]["torque_sign"]
+    # a torque and an angle read reversed, with too few settled fills to say which chamber is which
+    rep["experiments"] |= {"pressure_order": {"swapped": False, "agreement": 1.0, "samples": 40},
+                           "torque_sign": {"reversed": True, "agreement": 0.004, "samples": 900},
+                           "angle_sign": {"reversed": True, "dissipation": -0.991, "samples": 1234}}
     page.evaluate("rep => show(rep)", rep)
+    expect(page.locator("#detail")).to_contain_text(
+        "The angle and speed were read with their signs reversed: as written, the chambers' and the measured torque "
+        "fed the vane's motion power back instead of losing it to friction (net -0.991 of the power over 1234 "
+        "samples in motion); with the torque reversed too, this is also what p_a and p_b written in each other's "
+        "columns look like, which no settled fill at two pressures in these logs can tell.")
+    expect(page.locator("#detail")).to_contain_text("if its sign is right, p_a and p_b are swapped")
+    # which chamber is which, settled: the pressures were swapped, and that alternative is no longer offered
+    rep["experiments"]["pressure_order"] = {"swapped": True, "agreement": 0.0, "samples": 1982}
+    rep["experiments"]["angle_sign"]["reversed"] = False
+    page.evaluate("rep => show(rep)", rep)
+    expect(page.locator("#detail")).to_contain_text(
+        "p_a and p_b were read swapped: with both chambers filling from regulators set at least 0.5 V apart, their "
+        "pressures stood in the other order in 100 % of 1982 settled samples.")
+    expect(page.locator("#detail")).not_to_contain_text("if its sign is right")
+    expect(page.locator("#detail")).not_to_contain_text("The angle and speed were read")
     expect(page.locator("#ranking")).to_contain_text("GC without the effect")
     expect(page.locator("#recal td.far")).to_have_count(1)
     expect(page.locator("#recal td.far")).to_have_text("0.360")

@@ -1030,16 +1030,28 @@ def test_a_single_station_log_is_split_in_time_and_diagnosed(tmp_path: Path,
     assert "held out: hold_closed-1[held-out]" in capsys.readouterr().out
 
 
-def _leak_logs_with_torque(d: Path, torque: Any) -> None:
-    """A short protocol on a rig with the larger vane leak, its torque column rewritten by ``torque``."""
+def _leak_logs(d: Path, rewrite: Any, kinds: tuple[str, ...] = ("hold_closed", "fill_shut", "friction_sweep")) -> None:
+    """A short protocol on a rig with the larger vane leak, each log's columns rewritten by
+    ``rewrite(columns)`` (a dict of the CSV's columns by name, changed in place)."""
     rig = PlantParams().with_effects(vane_leakage=MAGNITUDES["vane_leakage"][1])
-    run_protocol(rig, seed=6, scale=0.4, kinds=["hold_closed", "fill_shut", "friction_sweep"], outdir=d)
+    run_protocol(rig, seed=6, scale=0.4, kinds=list(kinds), outdir=d)
     for csv in d.glob("*.csv"):
         head, *rows = csv.read_text().splitlines()
+        names = head.split(",")
         data = np.array([[float(v) for v in r.split(",")] for r in rows])
-        j = head.split(",").index("torque")
-        data[:, j] = torque(data[:, j])
+        cols = {n: data[:, j].copy() for j, n in enumerate(names)}
+        rewrite(cols)
+        data = np.column_stack([cols[n] for n in names])
         csv.write_text(head + "\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in data) + "\n")
+
+
+def _leak_logs_with_torque(d: Path, torque: Any) -> None:
+    """:func:`_leak_logs` with the torque column rewritten by ``torque``."""
+
+    def rewrite(cols: dict[str, np.ndarray]) -> None:
+        cols["torque"] = torque(cols["torque"])
+
+    _leak_logs(d, rewrite)
 
 
 @pytest.mark.slow
@@ -1095,3 +1107,84 @@ def test_the_torques_sign_is_read_where_the_pressures_alone_set_it() -> None:
     # at an end stop the stop, not the sensor, takes the pneumatic torque; below the pressures' say, nothing
     assert fam.torque_sign_agreement([log(-held, theta=fam.nominal.vane.theta_max)]) == (1.0, 0)
     assert fam.torque_sign_agreement([log(0.1 * np.ones_like(t))]) == (1.0, 0)
+
+
+def _held_log(fam: RotaryFamily, z_a: float, z_b: float, p_a: float, p_b: float, omega: float = 0.0,
+              torque: float = 0.0, human: bool = True) -> Experiment:
+    """2 s of both DCVs filling from PRVs commanded to ``z_a`` / ``z_b`` [V], the chambers at ``p_a`` /
+    ``p_b`` [bar abs], the vane turning at ``omega`` [rad/s] against ``torque`` [N·m]."""
+    t = np.arange(0.0, 2.0, 0.005)
+    n = len(t)
+    one = np.ones(n)
+    return Experiment("x", t, {"z_a": z_a * one, "z_b": z_b * one, "u_a": 0.0 * one, "u_b": 10.0 * one},
+                      {"p_a": p_a * one, "p_b": p_b * one, "p_s": 7.0 * one, "theta": 0.3 * np.sin(t),
+                       "omega": omega * one, "torque": torque * one}, {"human": human})
+
+
+def test_which_chamber_is_which_is_read_off_settled_fills() -> None:
+    fam = RotaryFamily()
+    # settled for 0.5 s of the 2 s: 300 samples; the chambers stand in their commands' order, or the other
+    assert fam.pressure_order_agreement([_held_log(fam, 3.0, 1.0, 4.0, 2.0)]) == (1.0, 300)
+    assert fam.pressure_order_agreement([_held_log(fam, 3.0, 1.0, 2.0, 4.0)]) == (0.0, 300)
+    # regulators set 0.3 V apart, or a chamber exhausting: nothing decided
+    assert fam.pressure_order_agreement([_held_log(fam, 2.0, 1.7, 2.0, 3.0)]) == (1.0, 0)
+    ex = _held_log(fam, 3.0, 1.0, 2.0, 4.0)
+    ex.inputs["u_a"][:] = 10.0
+    assert fam.pressure_order_agreement([ex]) == (1.0, 0)
+
+
+def test_the_angles_sign_is_read_off_the_power_friction_takes() -> None:
+    fam = RotaryFamily()
+    # P_a − P_b = 0.5 bar: 0.98 N·m of pneumatic torque turning the vane at +1 rad/s, the user helping
+    right = _held_log(fam, 2.0, 2.0, 3.5, 3.0, omega=1.0, torque=0.2)
+    assert fam.dissipation([right]) == (1.0, 400)
+    assert fam.dissipation([_held_log(fam, 2.0, 2.0, 3.5, 3.0, omega=-1.0, torque=0.2)]) == (-1.0, 400)
+    # a user driving the vane against the chambers: the measured torque decides
+    assert fam.dissipation([_held_log(fam, 2.0, 2.0, 3.5, 3.0, omega=-1.0, torque=-1.5)])[0] == 1.0
+    # without a measured torque only the logs with nobody at the handle count
+    assert fam.dissipation([_held_log(fam, 2.0, 2.0, 3.5, 3.0, omega=-1.0)], torque_measured=False) == (1.0, 0)
+    free = _held_log(fam, 2.0, 2.0, 3.5, 3.0, omega=-1.0, human=False)
+    assert fam.dissipation([free], torque_measured=False) == (-1.0, 400)
+
+
+def test_each_convention_undone_is_said_and_the_alternative_only_while_the_logs_cannot_rule_it_out() -> None:
+    from app.engine.diagnosis.run import Conventions
+
+    none = Conventions(False, 1.0, 2000, False, 1.0, 3000, False, 0.99, 8000)
+    assert none.summary() == ""
+    both = none._replace(pressure_samples=40, torque_reversed=True, torque_agreement=0.0, angle_reversed=True,
+                         dissipation=-0.99)
+    said = both.summary()
+    assert "the torque was read with its sign reversed (it opposed the sign the chamber pressures give it in " \
+           "100 % of 3000 samples where they alone set it; if the torque's sign is right, p_a and p_b are swapped)" \
+           in said
+    assert "net -0.99 of the power over 8000 samples in motion; with the torque reversed too, this is also what " \
+           "p_a and p_b written in each other's columns look like" in said
+    settled = both._replace(pressure_samples=2000).summary()
+    assert "swapped" not in settled and "the angle and speed were read with their signs reversed" in settled
+    assert none._replace(pressure_swapped=True, pressure_agreement=0.0).summary() == (
+        "; p_a and p_b were read swapped (with both chambers filling from regulators set ≥ 0.5 V apart, their "
+        "pressures stood in the other order in 100 % of 2000 settled samples)")
+    assert none.report()["angle_sign"] == {"reversed": False, "dissipation": 0.99, "samples": 8000}
+
+
+@pytest.mark.slow
+def test_pressures_written_in_each_others_columns_and_a_reversed_angle_are_read_the_right_way(
+        tmp_path: Path) -> None:
+    # read as written, the swapped pressures of a large vane leak's logs gave "no significant effect"
+    # (E 219 × the floor) and a reversed angle left E after the leak 9 × the right reading's
+    from app.engine.diagnosis.run import diagnose_dir
+
+    def rewrite(cols: dict[str, np.ndarray]) -> None:
+        cols["p_a"], cols["p_b"] = cols["p_b"], cols["p_a"]
+        cols["theta"], cols["omega"] = -cols["theta"], -cols["omega"]
+
+    _leak_logs(tmp_path, rewrite, kinds=("prv_steps", "hold_closed", "fill_shut", "friction_sweep"))
+    r = diagnose_dir(tmp_path)
+    ex = r["experiments"]
+    assert ex["pressure_order"]["swapped"] and ex["pressure_order"]["samples"] >= 100, ex["pressure_order"]
+    assert ex["angle_sign"]["reversed"] and ex["angle_sign"]["dissipation"] < -0.9, ex["angle_sign"]
+    assert not ex["torque_sign"]["reversed"], ex["torque_sign"]
+    assert r["verdict"]["effects"] == ["vane_leakage"], r["verdict"]
+    assert "; p_a and p_b were read swapped (" in r["verdict"]["summary"]
+    assert "; the angle and speed were read with their signs reversed (" in r["verdict"]["summary"]

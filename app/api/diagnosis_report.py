@@ -44,6 +44,12 @@ class Experiments(_Open):
         torque_sign: Whether the torque was taken with its sign reversed (``reversed``), the share of samples
             whose sign agrees with the one the chamber pressures give it (``agreement``) and how many such
             samples there were (``samples``).
+        pressure_order: Whether p_a and p_b were taken swapped (``swapped``), the share of settled fills
+            whose chamber pressures stand in the order of their regulators' commands (``agreement``) and how
+            many such samples there were (``samples``; under 100 decide nothing).
+        angle_sign: Whether the angle and speed were taken with their signs reversed (``reversed``), the net
+            share of the power the torques on the vane lose to its motion (``dissipation``, −1 … 1; friction
+            makes it near 1) and over how many samples in motion (``samples``).
     """
 
     calibration: list[str]
@@ -56,6 +62,8 @@ class Experiments(_Open):
     unscored_channels: list[str] = Field(default_factory=list)
     unmeasured_channels: dict[str, Num] = Field(default_factory=dict)
     torque_sign: dict[str, Any] | None = None
+    pressure_order: dict[str, Any] | None = None
+    angle_sign: dict[str, Any] | None = None
 
 
 class Gap(_Open):

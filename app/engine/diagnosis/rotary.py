@@ -109,6 +109,8 @@ PRV_STEP_V = 0.1  # a PRV command change this large [V] starts a pressure transi
 DCV_STEP_V = 0.2  # and a DCV command change this large [V]
 FAST_RAD_S = 1.0  # the top speed band [rad/s]
 LEVEL_BAR = 3.0  # the two pressure levels part here [bar abs]
+DCV_OPEN_V = 4.5  # a DCV command this far from 5 V [V] or further counts as fully open
+MOVING_RAD_S = 0.1  # above this speed [rad/s] a sample counts as motion
 
 REPLAY_CACHE = 128  # replayed pressure sets kept per log (a descent revisits its recent points)
 TORQUE_CACHE = 64  # torque-balance predictions kept per log
@@ -652,6 +654,70 @@ class RotaryFamily:
             n += int(use.sum())
             agree += int((np.sign(tq[use]) == np.sign(pneu[use])).sum())
         return (agree / n if n else 1.0), n
+
+    def pressure_order_agreement(self, exps: list[Experiment], min_apart_v: float = 0.5,
+                                 settled_s: float = 0.5) -> tuple[float, int]:
+        """How often the chamber pressures stand in the order their regulators' commands put them.
+
+        Where both DCVs are fully open to fill (u_a ≤ 0.5 V, u_b ≥ 9.5 V:
+        the wiring the log format fixes), the commands have held for
+        ``settled_s`` [s] and the two PRV commands are at least
+        ``min_apart_v`` [V] apart, each chamber sits at its own PRV's
+        pressure, so P_a − P_b has the sign of z_a − z_b whatever leaks,
+        lags or friction the rig has. Logs with p_a and p_b written in each
+        other's columns agree almost never; this is read before the
+        torque's sign, which the pressures' order decides.
+
+        Returns:
+            The fraction of such samples that agree, and how many there were
+            (1.0 and 0 when there is none).
+        """
+        agree = n = 0
+        for e in exps:
+            u = e.inputs
+            cmds = np.column_stack([u["z_a"], u["z_b"], u["u_a"], u["u_b"]])
+            changed = np.r_[True, (np.abs(np.diff(cmds, axis=0)) > 0.05).any(axis=1)]
+            idx = np.arange(len(changed))
+            since = idx - np.maximum.accumulate(np.where(changed, idx, 0))  # samples since the last change
+            dz = u["z_a"] - u["z_b"]
+            use = ((5.0 - u["u_a"] >= DCV_OPEN_V) & (u["u_b"] - 5.0 >= DCV_OPEN_V) & (np.abs(dz) >= min_apart_v)
+                   & (since * e.dt >= settled_s))
+            n += int(use.sum())
+            agree += int((np.sign(e.channels["p_a"] - e.channels["p_b"])[use] == np.sign(dz[use])).sum())
+        return (agree / n if n else 1.0), n
+
+    def dissipation(self, exps: list[Experiment], torque_measured: bool = True) -> tuple[float, int]:
+        """The share of the power the torques on the vane lose to its motion, net (−1 … 1).
+
+        In motion (|ω| > :data:`MOVING_RAD_S`, away from the end stops) the
+        chambers' torque A_v·r·(P_a − P_b) and the measured (the user's)
+        torque together drive the vane against friction, which only takes
+        power: Σ (T_p + T)·ω over those samples, divided by Σ |(T_p + T)·ω|,
+        is near 1 (the vane's inertia stores and returns a little). A log
+        whose angle and speed are written with the other sign reads near −1.
+        Read once the torque's sign is settled. Without a measured torque
+        only logs with nobody at the handle (``human`` false) count: a user
+        drives the vane against the chambers.
+
+        Returns:
+            The net share, and how many samples in motion it was taken over
+            (1.0 and 0 when there is none).
+        """
+        num = den = 0.0
+        n = 0
+        for e in exps:
+            ch = e.channels
+            if not torque_measured and e.meta.get("human", True):
+                continue
+            drive = self.nominal.vane.torque_per_pa * (ch["p_a"] - ch["p_b"]) * BAR
+            if torque_measured:
+                drive = drive + ch["torque"]
+            use = (np.abs(ch["omega"]) > MOVING_RAD_S) & ~self.at_stops(ch["theta"])
+            power = drive[use] * ch["omega"][use]
+            num += float(power.sum())
+            den += float(np.abs(power).sum())
+            n += int(use.sum())
+        return (num / den if n and den > 0.0 else 1.0), n
 
     def measured(self, prep: RotaryPrep) -> dict[str, np.ndarray]:
         k = prep.keep

@@ -116,15 +116,9 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     if linear:
         raise LogFormatError(f"{d}: {', '.join(linear)} come from the linear rig; the replay family covers "
                              "the rotary rig (diagnose linear-rig logs in a directory of their own once it does)")
-    # a rig that writes the torque with the other sign convention (the torque on the user, not the
-    # user's on the handle) had the balance fitted against its mirror image: a vane leak came out with
-    # presliding friction beside it. Where the pressures alone set the sign and the log says the
-    # opposite almost everywhere, the sign is taken reversed, and the report says so
-    agreement, samples = family.torque_sign_agreement(exps)
-    reversed_torque = samples >= TORQUE_SIGN_MIN_SAMPLES and agreement < TORQUE_SIGN_AGREEMENT
-    if reversed_torque:
-        for e in exps:
-            e.channels["torque"] = -e.channels["torque"]
+    # the sensors' conventions (which chamber is which, the torque's and the angle's signs), read off
+    # physics the rig cannot escape; a clear reversal is undone before anything is fitted, and said
+    conv = read_conventions(family, exps)
     # a channel the rig may lack that reads one value in every log measures nothing: fitted as a
     # constant it bends the baseline (a torque read as 0 throughout hid a vane leak that closes 0.97
     # of the gap without it), so it leaves the diagnosis and the report says so
@@ -135,7 +129,7 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     calib, held, why = _split_station(exps, held_out)
     report = diagnose(family, calib, held, protocol=PROTOCOL, stop=stop)
     report["experiments"]["unmeasured_channels"] = unmeasured
-    report["experiments"]["torque_sign"] = {"reversed": reversed_torque, "agreement": agreement, "samples": samples}
+    report["experiments"] |= conv.report()
     report["baseline"]["bounds"] = {p.name: [p.lo, p.hi] for p in family.baseline()}
     report["experiments"]["split"] = why
     # what each log gave the fit to learn from (the regimes the split weighs)
@@ -160,11 +154,7 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     if unmeasured:
         report["verdict"]["summary"] += (f"; {', '.join(unmeasured)} read one value in every log, taken as not "
                                          "measured and left out")
-    if reversed_torque:
-        report["verdict"]["summary"] += (f"; the torque was read with its sign reversed (it opposed the sign the "
-                                         f"chamber pressures give it in {100 * (1 - agreement):.0f} % of {samples} "
-                                         "samples where they alone set it; if the torque's sign is right, p_a and "
-                                         "p_b are swapped)")
+    report["verdict"]["summary"] += conv.summary()
     if report["verdict"]["untested"]:
         report["verdict"]["summary"] += (f"; not shown by the held-out logs, so not ruled out: "
                                          f"{', '.join(report['verdict']['untested'])}")
@@ -202,10 +192,108 @@ nearly all of them, the mirror image in nearly none."""
 TORQUE_SIGN_MIN_SAMPLES = 100
 """Fewer such samples than this (a protocol that never holds the chambers 1 bar apart) decide nothing."""
 
-MOVING_RAD_S = 0.1
+PRESSURE_ORDER_AGREEMENT = 0.1
+"""Below this share of settled fills whose chamber pressures stand in their commands' order, p_a and p_b are
+taken swapped (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.pressure_order_agreement`; right: all of them)."""
+ANGLE_SIGN_DISSIPATION = -0.5
+"""Below this net share of power lost to the motion, the angle and speed are taken reversed
+(:meth:`~app.engine.diagnosis.rotary.RotaryFamily.dissipation`; right: 0.99–1.0 on every rig tried, reversed: −1)."""
+CONVENTION_MIN_SAMPLES = 100
+"""Fewer samples than this decide nothing about the pressures' order or the angle's sign."""
+
+MOVING_RAD_S = rotary.MOVING_RAD_S
 """Speed above which a sample counts as motion for :func:`excites` [rad/s]."""
-DCV_OPEN_V = 4.5
+DCV_OPEN_V = rotary.DCV_OPEN_V
 """A DCV command this far from 5 V [V] or further counts as fully open for :func:`excites`."""
+
+
+class Conventions(NamedTuple):
+    """What :func:`read_conventions` found about how the logs' sensors were written, and undid."""
+
+    pressure_swapped: bool
+    pressure_agreement: float
+    pressure_samples: int
+    torque_reversed: bool
+    torque_agreement: float
+    torque_samples: int
+    angle_reversed: bool
+    dissipation: float
+    moving_samples: int
+
+    def report(self) -> dict[str, dict[str, Any]]:
+        """The report's ``experiments.pressure_order``, ``torque_sign`` and ``angle_sign``."""
+        return {"pressure_order": {"swapped": self.pressure_swapped, "agreement": self.pressure_agreement,
+                                   "samples": self.pressure_samples},
+                "torque_sign": {"reversed": self.torque_reversed, "agreement": self.torque_agreement,
+                                "samples": self.torque_samples},
+                "angle_sign": {"reversed": self.angle_reversed, "dissipation": self.dissipation,
+                               "samples": self.moving_samples}}
+
+    def summary(self) -> str:
+        """Clauses for the verdict line, one per convention undone ("" when none was)."""
+        out = ""
+        order_known = self.pressure_samples >= CONVENTION_MIN_SAMPLES
+        if self.pressure_swapped:
+            out += (f"; p_a and p_b were read swapped (with both chambers filling from regulators set ≥ 0.5 V "
+                    f"apart, their pressures stood in the other order in {100 * (1 - self.pressure_agreement):.0f} "
+                    f"% of {self.pressure_samples} settled samples)")
+        if self.torque_reversed:
+            out += (f"; the torque was read with its sign reversed (it opposed the sign the chamber pressures give "
+                    f"it in {100 * (1 - self.torque_agreement):.0f} % of {self.torque_samples} samples where they "
+                    "alone set it" + ("" if order_known else "; if the torque's sign is right, p_a and p_b are "
+                                      "swapped") + ")")
+        if self.angle_reversed:
+            out += (f"; the angle and speed were read with their signs reversed (as written, the chambers' and "
+                    f"the measured torque fed the vane's motion power back instead of losing it to friction: net "
+                    f"{self.dissipation:.2f} of the power over {self.moving_samples} samples in motion"
+                    + ("; with the torque reversed too, this is also what p_a and p_b written in each other's "
+                       "columns look like, which no settled fill at two pressures in these logs can tell"
+                       if self.torque_reversed and not order_known else "") + ")")
+        return out
+
+
+def read_conventions(family: RotaryFamily, exps: list[Experiment]) -> Conventions:
+    """Check how the logs' sensors were written, and undo a clear reversal in place.
+
+    A log written with another convention is fitted against a mirror image
+    of itself, and its gap blamed on some effect. Each check reads physics
+    the rig cannot escape, in the order each needs the one before it:
+
+    1. which chamber is which: a settled fill stands at its own regulator's
+       pressure (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.pressure_order_agreement`).
+       Read swapped, a large vane leak's logs gave "no significant effect"
+       (E 219 × the floor); undone, the same verdict and E as written right;
+    2. the torque's sign: where the pressures alone set it
+       (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.torque_sign_agreement`;
+       the torque on the user rather than the user's on the handle). Read
+       reversed, presliding friction was named beside a vane leak;
+    3. the angle's sign: the torques on the vane lose power to friction as it
+       moves (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.dissipation`;
+       only logs with nobody at the handle when the torque reads one value in
+       every log). Read reversed, the leak was still named, but the
+       baseline's friction went past 2 × nominal and E after it stayed 9 ×
+       the right reading's.
+
+    Each decides only on :data:`CONVENTION_MIN_SAMPLES` (the torque:
+    :data:`TORQUE_SIGN_MIN_SAMPLES`) samples or more.
+    """
+    p_agree, p_n = family.pressure_order_agreement(exps)
+    swapped = p_n >= CONVENTION_MIN_SAMPLES and p_agree < PRESSURE_ORDER_AGREEMENT
+    if swapped:
+        for e in exps:
+            e.channels["p_a"], e.channels["p_b"] = e.channels["p_b"], e.channels["p_a"]
+    t_agree, t_n = family.torque_sign_agreement(exps)
+    torque_reversed = t_n >= TORQUE_SIGN_MIN_SAMPLES and t_agree < TORQUE_SIGN_AGREEMENT
+    if torque_reversed:
+        for e in exps:
+            e.channels["torque"] = -e.channels["torque"]
+    torque_measured = not all("torque" in flat_channels(e) for e in exps)
+    dissipated, moving = family.dissipation(exps, torque_measured=torque_measured)
+    angle_reversed = moving >= CONVENTION_MIN_SAMPLES and dissipated < ANGLE_SIGN_DISSIPATION
+    if angle_reversed:
+        for e in exps:
+            e.channels["theta"], e.channels["omega"] = -e.channels["theta"], -e.channels["omega"]
+    return Conventions(swapped, p_agree, p_n, torque_reversed, t_agree, t_n, angle_reversed, dissipated, moving)
 
 
 def excites(e: Experiment) -> frozenset[str]:
