@@ -119,6 +119,32 @@ def test_malformed_logs_are_refused_with_the_problem_named(tmp_path: Path, mutat
     assert str(exc.value).startswith("bad")
 
 
+@pytest.mark.parametrize(("omega_factor", "theta_factor", "message"), [
+    (60 / (2 * math.pi), 1.0, "omega ≈ 9.57 × dθ/dt over 290 samples in motion — looks like omega in rpm"),
+    (-1.0, 1.0, "omega ≈ -1 × dθ/dt over 290 samples in motion — looks like omega written with the other sign"),
+    (1.0, 180 / math.pi, "— looks like theta in degrees"),  # a small swing, inside ±2π in degrees too
+    (0.3, 1.0, "omega ≈ 0.301 × dθ/dt over 290 samples in motion; the format wants"),
+])
+def test_a_speed_that_is_not_the_angles_rate_of_change_is_refused(tmp_path: Path, omega_factor: float,
+                                                                  theta_factor: float, message: str) -> None:
+    """The replay reads the speed off the angle; an omega column in another unit or sign means one of the
+    two was written otherwise than the format says, and the log is refused naming which looks wrong."""
+    rows = _frame()
+    t = rows[:, 0]
+    rows[:, 8], rows[:, 9] = 0.1 * np.sin(5 * t), 0.5 * np.cos(5 * t)  # 0.1 rad swung at 5 rad/s
+    write_log(tmp_path, "ok", rows, META)  # as the format says: read
+    assert read_log(tmp_path / "ok").channels["omega"][0] == pytest.approx(0.5)
+    bad = rows * np.r_[1, 1, 1, 1, 1, 1, 1, 1, theta_factor, omega_factor, 1]
+    _write_raw(tmp_path, "bad", list(LOG_COLUMNS), bad, META)
+    with pytest.raises(LogFormatError) as exc:
+        read_log(tmp_path / "bad.csv")
+    assert str(exc.value).startswith("bad: omega is not the rate of change of theta: ") and message in str(exc.value)
+    flat = rows.copy()
+    flat[:, 9] = 0.0  # a speed not measured decides nothing (the replay reads the angle)
+    _write_raw(tmp_path, "flat", list(LOG_COLUMNS), flat, META)
+    assert read_log(tmp_path / "flat").channels["omega"][0] == 0.0
+
+
 def test_a_log_without_its_json_is_refused(tmp_path: Path) -> None:
     _write_raw(tmp_path, "x", list(LOG_COLUMNS), _frame(), META)
     (tmp_path / "x.json").unlink()

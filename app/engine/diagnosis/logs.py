@@ -159,6 +159,36 @@ def unscored_near_fills(filled: np.ndarray | None, margin: int) -> np.ndarray | 
     return out
 
 
+SPEED_RATIO_RANGE = (0.5, 2.0)
+"""omega / (dθ/dt) outside this is another unit or sign; a log written right reads 1.00–1.02 (ours and the
+independent rig's), and a speed filtered hard enough to halve it measures something else."""
+SPEED_RATIO_MIN_SAMPLES = 100
+"""Fewer samples in motion than this decide nothing about omega's unit or sign."""
+
+
+def speed_ratio(t: np.ndarray, theta: np.ndarray, omega: np.ndarray, half_window_s: float = 0.025,
+                moving: float = 0.2) -> tuple[float, int]:
+    """How omega compares with the rate of change of theta: the least-squares slope of one on the other.
+
+    The rate is the centred difference over ±``half_window_s`` [s] (an
+    encoder's counts are too coarse for one sample's), taken where it
+    exceeds ``moving`` [rad/s]. A flat omega (not measured) decides nothing.
+
+    Returns:
+        The slope, and over how many samples (1.0 and 0 when none).
+    """
+    if t.size < 3 or float(np.ptp(omega)) == 0.0:
+        return 1.0, 0
+    k = max(1, int(round(half_window_s / float(np.median(np.diff(t))))))
+    if t.size <= 2 * k:
+        return 1.0, 0
+    rate = (theta[2 * k:] - theta[:-2 * k]) / (t[2 * k:] - t[:-2 * k])
+    w = omega[k:-k]
+    use = np.abs(rate) > moving
+    x, y = rate[use], w[use]
+    return (float(x @ y / (x @ x)) if x.size else 1.0), int(x.size)
+
+
 def check_frame(name: str, columns: list[str], data: np.ndarray, meta: dict[str, Any]) -> None:
     """Refuse a log whose columns, values or metadata are unusable.
 
@@ -214,6 +244,15 @@ def check_frame(name: str, columns: list[str], data: np.ndarray, meta: dict[str,
             hint = f" — looks like gauge pressure (bar g); add the atmosphere, p_atm_bar = {atm:g}"
         raise LogFormatError(f"{name}: column {col} spans {v.min():.4g} … {v.max():.4g}, outside the plausible "
                              f"{lo:g} … {hi:g} {unit}{hint}; the format wants {unit}")
+    k, n = speed_ratio(data[:, 0], data[:, LOG_COLUMNS.index("theta")], data[:, LOG_COLUMNS.index("omega")])
+    if n >= SPEED_RATIO_MIN_SAMPLES and not SPEED_RATIO_RANGE[0] <= k <= SPEED_RATIO_RANGE[1]:
+        guess = next((why for f, why in ((-1.0, "omega written with the other sign than theta"),
+                                         (180 / math.pi, "omega in deg/s"), (60 / (2 * math.pi), "omega in rpm"),
+                                         (math.pi / 180, "theta in degrees"))
+                      if 0.8 <= k / f <= 1.25), "")
+        raise LogFormatError(f"{name}: omega is not the rate of change of theta: omega ≈ {k:.3g} × dθ/dt over {n} "
+                             f"samples in motion{f' — looks like {guess}' if guess else ''}; the format wants "
+                             "theta [rad] and omega [rad/s], CCW positive both")
 
 
 def read_log(path: str | Path) -> Experiment:
