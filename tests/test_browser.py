@@ -574,6 +574,7 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     assert not stored["experiments"]["pressure_order"]["swapped"], stored["experiments"]["pressure_order"]
     assert not stored["experiments"]["angle_sign"]["reversed"], stored["experiments"]["angle_sign"]
     assert not stored["experiments"]["torque_sign"]["reversed"], stored["experiments"]["torque_sign"]
+    assert not any(w["mirrored"] for w in stored["experiments"]["dcv_wiring"].values())
     # a torque and an angle read reversed, with too few settled fills to say which chamber is which
     rep["experiments"] |= {"pressure_order": {"swapped": False, "agreement": 1.0, "samples": 40},
                            "torque_sign": {"reversed": True, "agreement": 0.004, "samples": 900},
@@ -588,7 +589,14 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     # which chamber is which, settled: the pressures were swapped, and that alternative is no longer offered
     rep["experiments"]["pressure_order"] = {"swapped": True, "agreement": 0.0, "samples": 1982}
     rep["experiments"]["angle_sign"]["reversed"] = False
+    rep["experiments"]["dcv_wiring"] = {"a": {"mirrored": False, "agreement": 1.0, "samples": 9000},
+                                        "b": {"mirrored": True, "agreement": 0.0, "samples": 9100}}
     page.evaluate("rep => show(rep)", rep)
+    expect(page.locator("#detail")).to_contain_text(
+        "DCV-b's command was read mirrored about 5 V: fully open, chamber b stood near the atmosphere where the "
+        "format's wiring fills it and near its regulator's pressure where it exhausts it, in 100 % of 9100 settled "
+        "samples.")
+    expect(page.locator("#detail")).not_to_contain_text("DCV-a's command")
     expect(page.locator("#detail")).to_contain_text(
         "p_a and p_b were read swapped: with both chambers filling from regulators set at least 0.5 V apart, their "
         "pressures stood in the other order in 100 % of 1982 settled samples.")

@@ -1133,6 +1133,21 @@ def test_which_chamber_is_which_is_read_off_settled_fills() -> None:
     assert fam.pressure_order_agreement([ex]) == (1.0, 0)
 
 
+def test_each_valves_wiring_is_read_off_where_its_chamber_stands() -> None:
+    fam = RotaryFamily()
+    # DCV-a fully open to fill (0 V), its PRV at 3 V: chamber a at the regulator's 4 bar abs, or at the room
+    fills = _held_log(fam, 3.0, 3.0, 4.01, 4.01)
+    assert fam.dcv_wiring_agreement([fills], "a") == (1.0, 300)
+    assert fam.dcv_wiring_agreement([_held_log(fam, 3.0, 3.0, 1.02, 4.01)], "a") == (0.0, 300)
+    assert fam.dcv_wiring_agreement([_held_log(fam, 3.0, 3.0, 4.01, 1.02)], "b") == (0.0, 300)
+    # exhausting (DCV-a at 10 V): at the room is right
+    vents = _held_log(fam, 3.0, 3.0, 1.02, 4.01)
+    vents.inputs["u_a"][:] = 10.0
+    assert fam.dcv_wiring_agreement([vents], "a") == (1.0, 300)
+    # a PRV commanded under 1 V leaves the two readings too close to tell
+    assert fam.dcv_wiring_agreement([_held_log(fam, 0.5, 0.5, 1.02, 1.02)], "a") == (1.0, 0)
+
+
 def test_the_angles_sign_is_read_off_the_power_friction_takes() -> None:
     fam = RotaryFamily()
     # P_a − P_b = 0.5 bar: 0.98 N·m of pneumatic torque turning the vane at +1 rad/s, the user helping
@@ -1166,10 +1181,17 @@ def test_each_convention_undone_is_said_and_the_alternative_only_while_the_logs_
         "; p_a and p_b were read swapped (with both chambers filling from regulators set ≥ 0.5 V apart, their "
         "pressures stood in the other order in 100 % of 2000 settled samples)")
     assert none.report()["angle_sign"] == {"reversed": False, "dissipation": 0.99, "samples": 8000}
+    valve = none._replace(dcv_mirrored=("b",), dcv_agreement=(1.0, 0.002), dcv_samples=(9000, 9100))
+    assert valve.summary() == (
+        "; DCV-b's command was read mirrored about 5 V (fully open, chamber b stood near the atmosphere where the "
+        "format's wiring fills it and near its regulator's pressure where it exhausts it, in 100 % of 9100 settled "
+        "samples)")
+    assert valve.report()["dcv_wiring"] == {"a": {"mirrored": False, "agreement": 1.0, "samples": 9000},
+                                            "b": {"mirrored": True, "agreement": 0.002, "samples": 9100}}
 
 
 @pytest.mark.slow
-def test_pressures_written_in_each_others_columns_and_a_reversed_angle_are_read_the_right_way(
+def test_pressures_in_each_others_columns_a_valve_wired_the_other_way_and_a_reversed_angle_are_read_right(
         tmp_path: Path) -> None:
     # read as written, the swapped pressures of a large vane leak's logs gave "no significant effect"
     # (E 219 × the floor) and a reversed angle left E after the leak 9 × the right reading's
@@ -1178,6 +1200,7 @@ def test_pressures_written_in_each_others_columns_and_a_reversed_angle_are_read_
     def rewrite(cols: dict[str, np.ndarray]) -> None:
         cols["p_a"], cols["p_b"] = cols["p_b"], cols["p_a"]
         cols["theta"], cols["omega"] = -cols["theta"], -cols["omega"]
+        cols["u_b"] = 10.0 - cols["u_b"]
 
     _leak_logs(tmp_path, rewrite, kinds=("prv_steps", "hold_closed", "fill_shut", "friction_sweep"))
     r = diagnose_dir(tmp_path)
@@ -1185,6 +1208,8 @@ def test_pressures_written_in_each_others_columns_and_a_reversed_angle_are_read_
     assert ex["pressure_order"]["swapped"] and ex["pressure_order"]["samples"] >= 100, ex["pressure_order"]
     assert ex["angle_sign"]["reversed"] and ex["angle_sign"]["dissipation"] < -0.9, ex["angle_sign"]
     assert not ex["torque_sign"]["reversed"], ex["torque_sign"]
+    assert [ex["dcv_wiring"][s]["mirrored"] for s in "ab"] == [False, True], ex["dcv_wiring"]
     assert r["verdict"]["effects"] == ["vane_leakage"], r["verdict"]
+    assert "; DCV-b's command was read mirrored about 5 V (" in r["verdict"]["summary"]
     assert "; p_a and p_b were read swapped (" in r["verdict"]["summary"]
     assert "; the angle and speed were read with their signs reversed (" in r["verdict"]["summary"]

@@ -44,6 +44,9 @@ class Experiments(_Open):
         torque_sign: Whether the torque was taken with its sign reversed (``reversed``), the share of samples
             whose sign agrees with the one the chamber pressures give it (``agreement``) and how many such
             samples there were (``samples``).
+        dcv_wiring: Per DCV (``a``, ``b``), whether its command was taken mirrored about 5 V (``mirrored``), the
+            share of settled, fully open samples whose chamber stands where the format's wiring puts it
+            (``agreement``) and how many such samples there were (``samples``; under 100 decide nothing).
         pressure_order: Whether p_a and p_b were taken swapped (``swapped``), the share of settled fills
             whose chamber pressures stand in the order of their regulators' commands (``agreement``) and how
             many such samples there were (``samples``; under 100 decide nothing).
@@ -62,6 +65,7 @@ class Experiments(_Open):
     unscored_channels: list[str] = Field(default_factory=list)
     unmeasured_channels: dict[str, Num] = Field(default_factory=dict)
     torque_sign: dict[str, Any] | None = None
+    dcv_wiring: dict[str, Any] | None = None
     pressure_order: dict[str, Any] | None = None
     angle_sign: dict[str, Any] | None = None
 

@@ -655,6 +655,41 @@ class RotaryFamily:
             agree += int((np.sign(tq[use]) == np.sign(pneu[use])).sum())
         return (agree / n if n else 1.0), n
 
+    def dcv_wiring_agreement(self, exps: list[Experiment], side: str, min_z_v: float = 1.0,
+                             settled_s: float = 0.5) -> tuple[float, int]:
+        """How often a chamber stands where its DCV's command, wired as the log format says, puts it.
+
+        Where the DCV of chamber ``side`` (``"a"`` or ``"b"``) is fully open
+        one way (:data:`DCV_OPEN_V` from 5 V), the commands have held for
+        ``settled_s`` [s] and its PRV is commanded at least ``min_z_v`` [V]
+        (1 bar) above the atmosphere, the chamber sits near its regulator's
+        pressure when the valve fills it (DCV-a below 5 V, DCV-b above) and
+        near the atmosphere when it exhausts it. A sample agrees when the
+        chamber is nearer the pressure its command should give than the
+        other. A rig whose valve is wired the other way round agrees almost
+        never.
+
+        Returns:
+            The fraction of such samples that agree, and how many there were
+            (1.0 and 0 when there is none).
+        """
+        agree = n = 0
+        for e in exps:
+            u = e.inputs
+            cmds = np.column_stack([u["z_a"], u["z_b"], u["u_a"], u["u_b"]])
+            changed = np.r_[True, (np.abs(np.diff(cmds, axis=0)) > 0.05).any(axis=1)]
+            idx = np.arange(len(changed))
+            since = idx - np.maximum.accumulate(np.where(changed, idx, 0))
+            z, valve, p = u[f"z_{side}"], u[f"u_{side}"], e.channels[f"p_{side}"]
+            fills = (5.0 - valve if side == "a" else valve - 5.0) >= DCV_OPEN_V
+            vents = (valve - 5.0 if side == "a" else 5.0 - valve) >= DCV_OPEN_V
+            use = (fills | vents) & (z >= min_z_v) & (since * e.dt >= settled_s)
+            p_atm = float(e.meta.get("p_atm_bar", 1.01325))
+            near_regulator = np.abs(p - (p_atm + z)) < np.abs(p - p_atm)
+            n += int(use.sum())
+            agree += int((near_regulator == fills)[use].sum())
+        return (agree / n if n else 1.0), n
+
     def pressure_order_agreement(self, exps: list[Experiment], min_apart_v: float = 0.5,
                                  settled_s: float = 0.5) -> tuple[float, int]:
         """How often the chamber pressures stand in the order their regulators' commands put them.

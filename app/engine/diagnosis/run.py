@@ -198,8 +198,12 @@ taken swapped (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.pressure_order_a
 ANGLE_SIGN_DISSIPATION = -0.5
 """Below this net share of power lost to the motion, the angle and speed are taken reversed
 (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.dissipation`; right: 0.99–1.0 on every rig tried, reversed: −1)."""
+DCV_WIRING_AGREEMENT = 0.1
+"""Below this share of settled, fully open samples whose chamber stands where the format's wiring puts it, that
+DCV's command is taken mirrored about 5 V (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.dcv_wiring_agreement`;
+right: all of them, on every rig and protocol tried)."""
 CONVENTION_MIN_SAMPLES = 100
-"""Fewer samples than this decide nothing about the pressures' order or the angle's sign."""
+"""Fewer samples than this decide nothing about a valve's wiring, the pressures' order or the angle's sign."""
 
 MOVING_RAD_S = rotary.MOVING_RAD_S
 """Speed above which a sample counts as motion for :func:`excites` [rad/s]."""
@@ -219,10 +223,15 @@ class Conventions(NamedTuple):
     angle_reversed: bool
     dissipation: float
     moving_samples: int
+    dcv_mirrored: tuple[str, ...] = ()
+    dcv_agreement: tuple[float, float] = (1.0, 1.0)
+    dcv_samples: tuple[int, int] = (0, 0)
 
     def report(self) -> dict[str, dict[str, Any]]:
-        """The report's ``experiments.pressure_order``, ``torque_sign`` and ``angle_sign``."""
-        return {"pressure_order": {"swapped": self.pressure_swapped, "agreement": self.pressure_agreement,
+        """The report's ``experiments.dcv_wiring``, ``pressure_order``, ``torque_sign`` and ``angle_sign``."""
+        return {"dcv_wiring": {s: {"mirrored": s in self.dcv_mirrored, "agreement": a, "samples": n}
+                               for s, a, n in zip("ab", self.dcv_agreement, self.dcv_samples, strict=True)},
+                "pressure_order": {"swapped": self.pressure_swapped, "agreement": self.pressure_agreement,
                                    "samples": self.pressure_samples},
                 "torque_sign": {"reversed": self.torque_reversed, "agreement": self.torque_agreement,
                                 "samples": self.torque_samples},
@@ -232,6 +241,11 @@ class Conventions(NamedTuple):
     def summary(self) -> str:
         """Clauses for the verdict line, one per convention undone ("" when none was)."""
         out = ""
+        for side, agreement, n in zip("ab", self.dcv_agreement, self.dcv_samples, strict=True):
+            if side in self.dcv_mirrored:
+                out += (f"; DCV-{side}'s command was read mirrored about 5 V (fully open, chamber {side} stood near "
+                        "the atmosphere where the format's wiring fills it and near its regulator's pressure where "
+                        f"it exhausts it, in {100 * (1 - agreement):.0f} % of {n} settled samples)")
         order_known = self.pressure_samples >= CONVENTION_MIN_SAMPLES
         if self.pressure_swapped:
             out += (f"; p_a and p_b were read swapped (with both chambers filling from regulators set ≥ 0.5 V "
@@ -253,21 +267,25 @@ class Conventions(NamedTuple):
 
 
 def read_conventions(family: RotaryFamily, exps: list[Experiment]) -> Conventions:
-    """Check how the logs' sensors were written, and undo a clear reversal in place.
+    """Check how the logs' sensors and valves were written, and undo a clear reversal in place.
 
     A log written with another convention is fitted against a mirror image
     of itself, and its gap blamed on some effect. Each check reads physics
     the rig cannot escape, in the order each needs the one before it:
 
-    1. which chamber is which: a settled fill stands at its own regulator's
+    1. each DCV's wiring: fully open, a valve fills or exhausts its chamber
+       (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.dcv_wiring_agreement`);
+       one wired the other way round has its command read mirrored about 5 V;
+    2. which chamber is which: a settled fill stands at its own regulator's
        pressure (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.pressure_order_agreement`).
        Read swapped, a large vane leak's logs gave "no significant effect"
-       (E 219 × the floor); undone, the same verdict and E as written right;
-    2. the torque's sign: where the pressures alone set it
+       (E 219 × the floor); undone, the same verdict and E as written right.
+       Each valve's wiring, read against the other chamber, is read again;
+    3. the torque's sign: where the pressures alone set it
        (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.torque_sign_agreement`;
        the torque on the user rather than the user's on the handle). Read
        reversed, presliding friction was named beside a vane leak;
-    3. the angle's sign: the torques on the vane lose power to friction as it
+    4. the angle's sign: the torques on the vane lose power to friction as it
        moves (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.dissipation`;
        only logs with nobody at the handle when the torque reads one value in
        every log). Read reversed, the leak was still named, but the
@@ -277,11 +295,28 @@ def read_conventions(family: RotaryFamily, exps: list[Experiment]) -> Convention
     Each decides only on :data:`CONVENTION_MIN_SAMPLES` (the torque:
     :data:`TORQUE_SIGN_MIN_SAMPLES`) samples or more.
     """
+
+    def read_wiring() -> tuple[list[tuple[float, int]], tuple[str, ...]]:
+        dcv = [family.dcv_wiring_agreement(exps, side) for side in "ab"]
+        mirrored = tuple(side for side, (a, n) in zip("ab", dcv, strict=True)
+                         if n >= CONVENTION_MIN_SAMPLES and a < DCV_WIRING_AGREEMENT)
+        mirror(mirrored)
+        return dcv, mirrored
+
+    def mirror(sides: tuple[str, ...]) -> None:
+        for side in sides:
+            for e in exps:
+                e.inputs[f"u_{side}"] = 10.0 - e.inputs[f"u_{side}"]
+
+    dcv, mirrored = read_wiring()
     p_agree, p_n = family.pressure_order_agreement(exps)
     swapped = p_n >= CONVENTION_MIN_SAMPLES and p_agree < PRESSURE_ORDER_AGREEMENT
     if swapped:
         for e in exps:
             e.channels["p_a"], e.channels["p_b"] = e.channels["p_b"], e.channels["p_a"]
+        # each valve's wiring was read against the other chamber: read it again against its own
+        mirror(mirrored)
+        dcv, mirrored = read_wiring()
     t_agree, t_n = family.torque_sign_agreement(exps)
     torque_reversed = t_n >= TORQUE_SIGN_MIN_SAMPLES and t_agree < TORQUE_SIGN_AGREEMENT
     if torque_reversed:
@@ -293,7 +328,8 @@ def read_conventions(family: RotaryFamily, exps: list[Experiment]) -> Convention
     if angle_reversed:
         for e in exps:
             e.channels["theta"], e.channels["omega"] = -e.channels["theta"], -e.channels["omega"]
-    return Conventions(swapped, p_agree, p_n, torque_reversed, t_agree, t_n, angle_reversed, dissipated, moving)
+    return Conventions(swapped, p_agree, p_n, torque_reversed, t_agree, t_n, angle_reversed, dissipated, moving,
+                       mirrored, (dcv[0][0], dcv[1][0]), (dcv[0][1], dcv[1][1]))
 
 
 def excites(e: Experiment) -> frozenset[str]:
