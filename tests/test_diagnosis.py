@@ -104,6 +104,10 @@ def test_a_clock_counted_from_1970_is_read_from_the_log_start(tmp_path: Path) ->
     (lambda h, r, m: (h, r * np.r_[1, 1, 1, 1, 1, 1e5, 1, 1, 1, 1, 1], m), "column p_a spans"),
     (lambda h, r, m: (h, r * np.r_[1, 1, 1, 1, 1, 1e5, 1, 1, 1, 1, 1], m), "looks like Pa"),
     (lambda h, r, m: (h, r * np.r_[1, 1, 1, 1, 1, 1, 1, 1, 180 / math.pi * 40, 1, 1], m), "looks like degrees"),
+    # a speed rests near 0 much of a log: its unit shows in the peak (4 rad/s read in deg/s)
+    (lambda h, r, m: (h, r * np.r_[1, 1, 1, 1, 1, 1, 1, 1, 1, 180 / math.pi * 40, 1], m),
+     "column omega spans -94.33 … 229.2, outside the plausible -60 … 60 rad/s — looks like deg/s or rpm"),
+    (lambda h, r, m: (h, r * np.r_[1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1e3 * 40], m), "looks like N·mm"),
     (lambda h, r, m: (h, r - np.r_[0, 0, 0, 0, 0, 3.0, 0, 0, 0, 0, 0], m),  # a vented chamber's sensor, read gauge
      "looks like gauge pressure (bar g); add the atmosphere, p_atm_bar = 1.013"),
     (lambda h, r, m: (h, r, {k: v for k, v in m.items() if k != "p_atm_bar"}), "missing key(s) p_atm_bar"),

@@ -45,6 +45,9 @@ _LIKELY: dict[str, list[tuple[float, str]]] = {
 }
 
 
+_PEAKED = ("rad", "rad/s", "N·m")  # units whose channels rest near 0: a wrong unit shows in the peak, not the median
+
+
 class LogFormatError(ValueError):
     """A log that cannot be used, with what is wrong and where."""
 
@@ -236,7 +239,14 @@ def check_frame(name: str, columns: list[str], data: np.ndarray, meta: dict[str,
         med = float(np.median(np.abs(v)))
         if v.min() >= lo and v.max() <= hi:
             continue
-        guess = next((u for f, u in _LIKELY.get(unit, []) if med > hi and 0.05 * hi <= med / f <= hi), None)
+        if unit in _PEAKED:
+            # an angle, a speed or a torque rests near 0 much of a log, so its median says little of its
+            # unit: the peak, rescaled, must land inside the range (deg/s read 85.6 for 1.5 rad/s); where
+            # more than one unit would, each is named
+            peak = float(np.max(np.abs(v)))
+            guess = " or ".join(u for f, u in _LIKELY[unit] if 0.01 * hi <= peak / f <= hi) or None
+        else:
+            guess = next((u for f, u in _LIKELY.get(unit, []) if med > hi and 0.05 * hi <= med / f <= hi), None)
         hint = f" — looks like {guess}" if guess else ""
         atm = float(meta["p_atm_bar"])
         if unit == "bar abs" and not guess and v.min() < lo and lo <= v.min() + atm and v.max() + atm <= hi:
