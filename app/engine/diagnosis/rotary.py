@@ -344,6 +344,16 @@ def _clipped(p: Param, bound: tuple[float, float] | None) -> Param:
     return dataclasses.replace(p, lo=max(p.lo, bound[0]), hi=min(p.hi, bound[1]))
 
 
+def settled(e: Experiment, hold_s: float, tol_v: float = 0.05) -> np.ndarray:
+    """Per sample, whether none of the four commands has moved by more than ``tol_v`` [V] for ``hold_s`` [s]."""
+    u = e.inputs
+    cmds = np.column_stack([u["z_a"], u["z_b"], u["u_a"], u["u_b"]])
+    changed = np.r_[True, (np.abs(np.diff(cmds, axis=0)) > tol_v).any(axis=1)]
+    idx = np.arange(len(changed))
+    since = idx - np.maximum.accumulate(np.where(changed, idx, 0))  # samples since the last change
+    return np.asarray(since * e.dt >= hold_s)
+
+
 class RotaryFamily:
     """Replay of station logs of the rotary rig (channels ``p_a``, ``p_b``, ``p_s`` [bar abs], ``torque`` [N·m]).
 
@@ -676,14 +686,10 @@ class RotaryFamily:
         agree = n = 0
         for e in exps:
             u = e.inputs
-            cmds = np.column_stack([u["z_a"], u["z_b"], u["u_a"], u["u_b"]])
-            changed = np.r_[True, (np.abs(np.diff(cmds, axis=0)) > 0.05).any(axis=1)]
-            idx = np.arange(len(changed))
-            since = idx - np.maximum.accumulate(np.where(changed, idx, 0))
             z, valve, p = u[f"z_{side}"], u[f"u_{side}"], e.channels[f"p_{side}"]
             fills = (5.0 - valve if side == "a" else valve - 5.0) >= DCV_OPEN_V
             vents = (valve - 5.0 if side == "a" else 5.0 - valve) >= DCV_OPEN_V
-            use = (fills | vents) & (z >= min_z_v) & (since * e.dt >= settled_s)
+            use = (fills | vents) & (z >= min_z_v) & settled(e, settled_s)
             p_atm = float(e.meta.get("p_atm_bar", 1.01325))
             near_regulator = np.abs(p - (p_atm + z)) < np.abs(p - p_atm)
             n += int(use.sum())
@@ -710,13 +716,9 @@ class RotaryFamily:
         agree = n = 0
         for e in exps:
             u = e.inputs
-            cmds = np.column_stack([u["z_a"], u["z_b"], u["u_a"], u["u_b"]])
-            changed = np.r_[True, (np.abs(np.diff(cmds, axis=0)) > 0.05).any(axis=1)]
-            idx = np.arange(len(changed))
-            since = idx - np.maximum.accumulate(np.where(changed, idx, 0))  # samples since the last change
             dz = u["z_a"] - u["z_b"]
             use = ((5.0 - u["u_a"] >= DCV_OPEN_V) & (u["u_b"] - 5.0 >= DCV_OPEN_V) & (np.abs(dz) >= min_apart_v)
-                   & (since * e.dt >= settled_s))
+                   & settled(e, settled_s))
             n += int(use.sum())
             agree += int((np.sign(e.channels["p_a"] - e.channels["p_b"])[use] == np.sign(dz[use])).sum())
         return (agree / n if n else 1.0), n
