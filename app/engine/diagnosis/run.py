@@ -275,7 +275,10 @@ def read_conventions(family: RotaryFamily, exps: list[Experiment]) -> Convention
 
     1. each DCV's wiring: fully open, a valve fills or exhausts its chamber
        (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.dcv_wiring_agreement`);
-       one wired the other way round has its command read mirrored about 5 V;
+       one wired the other way round has its command read mirrored about 5 V.
+       Read as written, a large vane leak's logs with DCV-b mirrored passed
+       for swapped pressures and a reversed torque: "no significant effect",
+       E 283 × the floor;
     2. which chamber is which: a settled fill stands at its own regulator's
        pressure (:meth:`~app.engine.diagnosis.rotary.RotaryFamily.pressure_order_agreement`).
        Read swapped, a large vane leak's logs gave "no significant effect"
