@@ -124,10 +124,10 @@ def test_malformed_logs_are_refused_with_the_problem_named(tmp_path: Path, mutat
 
 
 @pytest.mark.parametrize(("omega_factor", "theta_factor", "message"), [
-    (60 / (2 * math.pi), 1.0, "omega ≈ 9.57 × dθ/dt over 290 samples in motion — looks like omega in rpm"),
-    (-1.0, 1.0, "omega ≈ -1 × dθ/dt over 290 samples in motion — looks like omega written with the other sign"),
+    (60 / (2 * math.pi), 1.0, "omega ≈ 9.57 × dθ/dt over 300 samples in motion — looks like omega in rpm"),
+    (-1.0, 1.0, "omega ≈ -1 × dθ/dt over 300 samples in motion — looks like omega written with the other sign"),
     (1.0, 180 / math.pi, "— looks like theta in degrees"),  # a small swing, inside ±2π in degrees too
-    (0.3, 1.0, "omega ≈ 0.301 × dθ/dt over 290 samples in motion; the format wants"),
+    (0.3, 1.0, "omega ≈ 0.301 × dθ/dt over 300 samples in motion; the format wants"),
 ])
 def test_a_speed_that_is_not_the_angles_rate_of_change_is_refused(tmp_path: Path, omega_factor: float,
                                                                   theta_factor: float, message: str) -> None:

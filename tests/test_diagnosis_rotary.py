@@ -1117,7 +1117,7 @@ def _held_log(fam: RotaryFamily, z_a: float, z_b: float, p_a: float, p_b: float,
     n = len(t)
     one = np.ones(n)
     return Experiment("x", t, {"z_a": z_a * one, "z_b": z_b * one, "u_a": 0.0 * one, "u_b": 10.0 * one},
-                      {"p_a": p_a * one, "p_b": p_b * one, "p_s": 7.0 * one, "theta": 0.3 * np.sin(t),
+                      {"p_a": p_a * one, "p_b": p_b * one, "p_s": 7.0 * one, "theta": omega * t,
                        "omega": omega * one, "torque": torque * one}, {"human": human})
 
 
@@ -1160,6 +1160,12 @@ def test_the_angles_sign_is_read_off_the_power_friction_takes() -> None:
     assert fam.dissipation([_held_log(fam, 2.0, 2.0, 3.5, 3.0, omega=-1.0)], torque_measured=False) == (1.0, 0)
     free = _held_log(fam, 2.0, 2.0, 3.5, 3.0, omega=-1.0, human=False)
     assert fam.dissipation([free], torque_measured=False) == (-1.0, 400)
+    # a speed not measured (omega flat at 0): read off the angle instead, here and for what a log excites
+    free.channels["omega"][:] = 0.0
+    assert fam.dissipation([free], torque_measured=False) == (-1.0, 400)
+    from app.engine.diagnosis.run import excites
+
+    assert "motion" in excites(free)
 
 
 def test_each_convention_undone_is_said_and_the_alternative_only_while_the_logs_cannot_rule_it_out() -> None:

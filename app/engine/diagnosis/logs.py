@@ -169,6 +169,26 @@ SPEED_RATIO_MIN_SAMPLES = 100
 """Fewer samples in motion than this decide nothing about omega's unit or sign."""
 
 
+def angle_rate(t: np.ndarray, theta: np.ndarray, half_window_s: float = 0.025) -> np.ndarray:
+    """dθ/dt as the centred difference over ±``half_window_s`` [s] (an encoder's counts are too coarse for
+    one sample's), one-sided at the ends."""
+    if t.size < 3:
+        return np.zeros_like(theta)
+    k = max(1, min(int(round(half_window_s / float(np.median(np.diff(t))))), (t.size - 1) // 2))
+    rate = np.empty_like(theta, dtype=float)
+    rate[k:-k] = (theta[2 * k:] - theta[:-2 * k]) / (t[2 * k:] - t[:-2 * k])
+    rate[:k] = (theta[k] - theta[0]) / (t[k] - t[0])
+    rate[-k:] = (theta[-1] - theta[-1 - k]) / (t[-1] - t[-1 - k])
+    return rate
+
+
+def speed_of(e: Experiment) -> np.ndarray:
+    """The vane's speed [rad/s]: the log's omega, or where it reads one value throughout (not measured),
+    the angle's rate of change."""
+    w = e.channels["omega"]
+    return angle_rate(e.t, e.channels["theta"]) if w.size > 1 and float(np.ptp(w)) == 0.0 else w
+
+
 def speed_ratio(t: np.ndarray, theta: np.ndarray, omega: np.ndarray, half_window_s: float = 0.025,
                 moving: float = 0.2) -> tuple[float, int]:
     """How omega compares with the rate of change of theta: the least-squares slope of one on the other.
@@ -182,13 +202,9 @@ def speed_ratio(t: np.ndarray, theta: np.ndarray, omega: np.ndarray, half_window
     """
     if t.size < 3 or float(np.ptp(omega)) == 0.0:
         return 1.0, 0
-    k = max(1, int(round(half_window_s / float(np.median(np.diff(t))))))
-    if t.size <= 2 * k:
-        return 1.0, 0
-    rate = (theta[2 * k:] - theta[:-2 * k]) / (t[2 * k:] - t[:-2 * k])
-    w = omega[k:-k]
+    rate = angle_rate(t, theta, half_window_s)
     use = np.abs(rate) > moving
-    x, y = rate[use], w[use]
+    x, y = rate[use], omega[use]
     return (float(x @ y / (x @ x)) if x.size else 1.0), int(x.size)
 
 

@@ -63,7 +63,7 @@ from scipy.signal import butter, fftconvolve, filtfilt
 from app.engine.constants import BAR
 from app.engine.diagnosis.core import Param, white_noise_sd
 from app.engine.diagnosis.families import WORKING_PRESSURE_BAR
-from app.engine.diagnosis.logs import Experiment, on_uniform_grid, unscored_near_fills
+from app.engine.diagnosis.logs import Experiment, on_uniform_grid, speed_of, unscored_near_fills
 from app.engine.params import EFFECT_NAMES, HumanParams, PlantParams, conductance_si
 from app.engine.physics import plant as pl
 
@@ -749,8 +749,9 @@ class RotaryFamily:
             drive = self.nominal.vane.torque_per_pa * (ch["p_a"] - ch["p_b"]) * BAR
             if torque_measured:
                 drive = drive + ch["torque"]
-            use = (np.abs(ch["omega"]) > MOVING_RAD_S) & ~self.at_stops(ch["theta"])
-            power = drive[use] * ch["omega"][use]
+            speed = speed_of(e)
+            use = (np.abs(speed) > MOVING_RAD_S) & ~self.at_stops(ch["theta"])
+            power = drive[use] * speed[use]
             num += float(power.sum())
             den += float(np.abs(power).sum())
             n += int(use.sum())

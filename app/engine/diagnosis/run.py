@@ -19,6 +19,7 @@ from app.engine.diagnosis.logs import (
     read_chamber_leak,
     read_emps,
     read_logdir,
+    speed_of,
 )
 from app.engine.diagnosis.protocol import effect_experiments
 from app.engine.diagnosis.rotary import RotaryFamily
@@ -354,7 +355,7 @@ def excites(e: Experiment) -> frozenset[str]:
     thresholds are this rule's.
     """
     out = set()
-    speed = np.abs(e.channels["omega"])
+    speed = np.abs(speed_of(e))  # a flat omega (not measured): the angle's rate of change
     # a fifth of the log in motion: a handle held at neutral also twitches when the pressures step
     if np.mean(speed > MOVING_RAD_S) >= 0.2:
         out.add("motion")
