@@ -158,3 +158,30 @@ def test_a_tube_behind_a_valve_of_another_form_is_fitted_beside_that_form(tmp_pa
     assert "dead_volume_scale" in recal["far"], recal["far"]
     assert "With tube_dynamics in the model, " in recal["note"]
     assert "chamber dead volumes × nominal comes back to" in recal["note"], recal["note"]
+
+
+def test_on_another_labs_experiments_swapped_pressures_with_a_valve_wired_the_other_way_are_read_right(
+        tmp_path: Path) -> None:
+    """With DCV-b mirrored no settled fill of both chambers is left to show their order, and the swapped
+    pressures passed for a reversed torque and angle; they are now read swapped from the start, which the
+    fills, the torque and the angle then all bear out (run.read_conventions)."""
+    from app.engine.diagnosis.rotary import RotaryFamily
+    from app.engine.diagnosis.run import read_conventions
+    from bench import independent_rig as ir
+
+    ir.run_rig_other(tmp_path, 0, "none")
+    right = {e.name: e for e in read_logdir(tmp_path)}
+    exps = read_logdir(tmp_path)
+    for e in exps:
+        e.channels["p_a"], e.channels["p_b"] = e.channels["p_b"], e.channels["p_a"]
+        e.inputs["u_b"] = 10.0 - e.inputs["u_b"]
+    conv = read_conventions(RotaryFamily(), exps)
+    assert conv.pressure_swapped and conv.dcv_mirrored == ("b",), conv
+    assert not conv.torque_reversed and not conv.angle_reversed, conv
+    for e in exps:  # undone: the logs as written right
+        for c in ("p_a", "p_b", "torque", "theta"):
+            np.testing.assert_array_equal(e.channels[c], right[e.name].channels[c])
+        np.testing.assert_allclose(e.inputs["u_b"], right[e.name].inputs["u_b"], atol=1e-12)
+    # written right, nothing is undone
+    clean = read_conventions(RotaryFamily(), list(right.values()))
+    assert not (clean.pressure_swapped or clean.dcv_mirrored or clean.torque_reversed or clean.angle_reversed)

@@ -297,8 +297,43 @@ def read_conventions(family: RotaryFamily, exps: list[Experiment]) -> Convention
        the right reading's.
 
     Each decides only on :data:`CONVENTION_MIN_SAMPLES` (the torque:
-    :data:`TORQUE_SIGN_MIN_SAMPLES`) samples or more.
+    :data:`TORQUE_SIGN_MIN_SAMPLES`) samples or more. A reversed torque and
+    angle with the pressures' order unknown are what swapped pressures look
+    like when a mirrored valve hides the fills (the independent rig's other
+    protocol): the checks are then run again with the pressures swapped from
+    the start, and that reading is kept if its fills stand in their
+    commands' order and the torque and the angle need no reversing.
     """
+
+    raw = [(dict(e.inputs), dict(e.channels)) for e in exps]
+    conv = _read_in_order(family, exps, swap_first=False)
+    if conv.torque_reversed and conv.angle_reversed and conv.pressure_samples < CONVENTION_MIN_SAMPLES:
+        # what swapped pressures look like when no settled fill showed their order (a valve wired the
+        # other way round hides the fills): read them swapped from the start, and keep that reading if
+        # its fills then stand in their commands' order and the torque and the angle need no reversing
+        read = [(dict(e.inputs), dict(e.channels)) for e in exps]
+        _restore(exps, raw)
+        alt = _read_in_order(family, exps, swap_first=True)
+        if (alt.pressure_samples >= CONVENTION_MIN_SAMPLES and alt.pressure_agreement <= PRESSURE_ORDER_AGREEMENT
+                and not alt.torque_reversed and not alt.angle_reversed):
+            return alt
+        _restore(exps, read)
+    return conv
+
+
+def _restore(exps: list[Experiment], state: list[tuple[dict[str, np.ndarray], dict[str, np.ndarray]]]) -> None:
+    for e, (inputs, channels) in zip(exps, state, strict=True):
+        e.inputs, e.channels = dict(inputs), dict(channels)
+
+
+def _read_in_order(family: RotaryFamily, exps: list[Experiment], swap_first: bool) -> Conventions:
+    """:func:`read_conventions`'s four checks in their order; ``swap_first`` takes p_a and p_b swapped before
+    any (the pressure order then reported is the one as written)."""
+
+    def mirror(sides: tuple[str, ...]) -> None:
+        for side in sides:
+            for e in exps:
+                e.inputs[f"u_{side}"] = 10.0 - e.inputs[f"u_{side}"]
 
     def read_wiring() -> tuple[list[tuple[float, int]], tuple[str, ...]]:
         dcv = [family.dcv_wiring_agreement(exps, side) for side in "ab"]
@@ -307,17 +342,19 @@ def read_conventions(family: RotaryFamily, exps: list[Experiment]) -> Convention
         mirror(mirrored)
         return dcv, mirrored
 
-    def mirror(sides: tuple[str, ...]) -> None:
-        for side in sides:
-            for e in exps:
-                e.inputs[f"u_{side}"] = 10.0 - e.inputs[f"u_{side}"]
-
-    dcv, mirrored = read_wiring()
-    p_agree, p_n = family.pressure_order_agreement(exps)
-    swapped = p_n >= CONVENTION_MIN_SAMPLES and p_agree < PRESSURE_ORDER_AGREEMENT
-    if swapped:
+    def swap() -> None:
         for e in exps:
             e.channels["p_a"], e.channels["p_b"] = e.channels["p_b"], e.channels["p_a"]
+
+    if swap_first:
+        swap()
+    dcv, mirrored = read_wiring()
+    p_agree, p_n = family.pressure_order_agreement(exps)
+    if swap_first:
+        p_agree = 1.0 - p_agree if p_n else p_agree  # as written
+    swapped = swap_first or (p_n >= CONVENTION_MIN_SAMPLES and p_agree < PRESSURE_ORDER_AGREEMENT)
+    if swapped and not swap_first:
+        swap()
         # each valve's wiring was read against the other chamber: read it again against its own
         mirror(mirrored)
         dcv, mirrored = read_wiring()
