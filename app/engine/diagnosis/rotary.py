@@ -641,6 +641,13 @@ class RotaryFamily:
         g = self.nominal.vane
         return np.asarray((theta >= g.theta_max - STOP_TOL_RAD) | (theta <= g.theta_min + STOP_TOL_RAD))
 
+    def pneumatic_torque(self, ch: dict[str, np.ndarray]) -> np.ndarray:
+        """The chambers' torque on the vane, A_v·r·(P_a − P_b) [N·m], CCW positive, at the nominal geometry.
+
+        A user holding the handle still measures its negative; the sign checks below read both off this.
+        """
+        return np.asarray(self.nominal.vane.torque_per_pa * (ch["p_a"] - ch["p_b"]) * BAR)
+
     def torque_sign_agreement(self, exps: list[Experiment], min_nm: float = 2.0) -> tuple[float, int]:
         """How often the measured torque has the sign the chamber pressures give it.
 
@@ -658,7 +665,7 @@ class RotaryFamily:
         agree = n = 0
         for e in exps:
             ch = e.channels
-            pneu = -self.nominal.vane.torque_per_pa * (ch["p_a"] - ch["p_b"]) * BAR
+            pneu = -self.pneumatic_torque(ch)  # what a user holding the handle against it measures
             tq = ch["torque"]
             use = (np.abs(pneu) > min_nm) & (np.abs(tq) > 0.25 * min_nm) & ~self.at_stops(ch["theta"])
             n += int(use.sum())
@@ -746,7 +753,7 @@ class RotaryFamily:
             ch = e.channels
             if not torque_measured and e.meta.get("human", True):
                 continue
-            drive = self.nominal.vane.torque_per_pa * (ch["p_a"] - ch["p_b"]) * BAR
+            drive = self.pneumatic_torque(ch)
             if torque_measured:
                 drive = drive + ch["torque"]
             speed = speed_of(e)
