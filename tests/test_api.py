@@ -426,6 +426,13 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
         plots.publish()
         for h in (plots.h_torque, plots.h_press, plots.h_speed, plots.h_err):
             assert all(np.all(np.isfinite(np.asarray(a))) for a in h.data), h
+            # room above the top value and left of a negative one (viser's default cut "-0.02" to "0.02")
+            pad = h.padding
+            assert pad is not None and pad[0] > 0 and pad[3] > 0, pad
+        # a handle at rest reads 0 rad/s, which uPlot would range over 0 … 100: held at ±1 rad/s or more
+        scales: Any = plots.h_speed.scales
+        y = scales["y"]["range"]
+        assert (y["min"]["soft"], y["min"]["mode"], y["max"]["soft"], y["max"]["mode"]) == (-1.0, 1, 1.0, 1)
         assert np.asarray(plots.h_torque.data[2])[-1] == 1.2 and np.asarray(plots.h_press.data[2])[0] == 2.9
         # no new sample, nothing sent: an idle station costs the viewers nothing
         sent: list[object] = []

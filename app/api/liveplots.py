@@ -28,6 +28,14 @@ _COL = {c: i for i, c in enumerate(LIVE_COLUMNS)}
 
 
 XSCALE: dict[str, Any] = {"x": {"time": False}}  # seconds of rig time, not a calendar date
+# A handle at rest reads exactly 0 rad/s (the encoder's steps), and uPlot ranges an all-zero series
+# over 0 … 100: a speed axis to 100 rad/s. Soft limits (uPlot's RangeConfig, mode 1: kept unless the
+# data reach past them) hold it at ±1 rad/s at least.
+# [top, right, bottom, left] px around each chart. viser's default, [0, 24, 0, 0], cut the y axis's
+# top value in half and the sign off a value wider than the axis: "-0.025" read "0.025".
+PADDING: tuple[int, int, int, int] = (10, 24, 0, 14)
+SPEED_SCALES: dict[str, Any] = XSCALE | {"y": {"range": {"min": {"soft": -1.0, "mode": 1, "pad": 0.1},
+                                                        "max": {"soft": 1.0, "mode": 1, "pad": 0.1}}}}
 
 
 def _series(label: str, color: str, dash: bool = False) -> Any:
@@ -70,17 +78,18 @@ class LivePlots:
         self.h_torque = gui.add_uplot(data=(np.zeros(2), np.zeros(2), np.zeros(2)),
                                       series=({"label": "t [s]"}, _series("T_i [N·m]", "#1f77b4"),
                                               _series("target [N·m]", "#d62728", dash=True)),
-                                      title="Interaction torque vs target", aspect=2.0, scales=XSCALE)
+                                      title="Interaction torque vs target", aspect=2.0, scales=XSCALE, padding=PADDING)
         self.h_press = gui.add_uplot(data=(np.zeros(2),) * 5,
                                      series=({"label": "t [s]"}, _series("P_a [bar]", "#2ca02c"),
                                              _series("P_a ref [bar]", "#2ca02c", dash=True),
                                              _series("P_b [bar]", "#9467bd"),
                                              _series("P_b ref [bar]", "#9467bd", dash=True)),
-                                     title="Chamber pressures vs references", aspect=2.0, scales=XSCALE)
+                                     title="Chamber pressures vs references", aspect=2.0, scales=XSCALE,
+                                     padding=PADDING)
         self.h_speed = gui.add_uplot(data=z, series=({"label": "t [s]"}, _series("ω [rad/s]", "#ff7f0e")),
-                                     title="Speed", aspect=2.5, scales=XSCALE)
+                                     title="Speed", aspect=2.5, scales=SPEED_SCALES, padding=PADDING)
         self.h_err = gui.add_uplot(data=z, series=({"label": "t [s]"}, _series("error [% of target]", "#8c564b")),
-                                   title="Tracking error", aspect=2.5, scales=XSCALE)
+                                   title="Tracking error", aspect=2.5, scales=XSCALE, padding=PADDING)
         self.h_metrics = gui.add_markdown("No finished run yet.")
         # drawn once now, hidden until a run has metrics: matplotlib, its fonts and viser's image
         # encoder load here, before the station freezes its heap, not on the publisher thread
