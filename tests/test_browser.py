@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from tests.conftest import ServedStation, free_port
@@ -143,6 +145,15 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     assert time.monotonic() - t0 < 2.0  # issue 5: live torque and pressure within 2 s of Start
     page.wait_for_timeout(5000)  # pressurise, engage, converge: enough of the window to score
     page.screenshot(path=str(SHOTS / "2-live-exercise.png"))
+    # the charts' gridlines sit at round values (1, 2, 2.5 or 5 × 10^k apart), not at the span cut in four
+    for chart in ("#c-torque", "#c-press"):
+        ticks = [float(v) for v in (page.locator(chart).get_attribute("data-ticks") or "").split()]
+        steps = np.diff(ticks)
+        assert len(ticks) >= 3 and np.allclose(steps, steps[0]), (chart, ticks)
+        mantissa = steps[0] / 10 ** math.floor(math.log10(steps[0]) + 1e-9)
+        assert any(math.isclose(mantissa, m) for m in (1, 2, 2.5, 5)), (chart, ticks)
+        assert all(math.isclose(t / steps[0], round(t / steps[0]), abs_tol=1e-6) for t in ticks), (chart, ticks)
+    assert page.evaluate("niceTicks(-0.32, 1.40)") == {"ticks": [0, 0.5, 1], "digits": 1}
     # a background tab is throttled: its charts had drawn only up to 4 s of a 9 s run, or not at all, when
     # captured from behind the dashboard; in front for a moment it draws what it has been sent
     viser.bring_to_front()
