@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import math
 import time
 from pathlib import Path
@@ -373,6 +374,14 @@ def test_the_linear_rig_runs_the_linear_identification_and_refuses_workouts(clie
     assert st["last_run"]["status"] == "cancelled"
     run = client.get("/api/runs", params={"kind": "linear_friction"}).json()[0]
     assert run["spec"]["piston_diameter_mm"] == 25 and run["status"] == "cancelled"
+    # what it drove is kept, in the log format, as far as it went (the thesis's GUIs kept each experiment)
+    assert run["has_series"]
+    series = client.get(f"/api/runs/{run['id']}/series").json()
+    assert series["meta"]["experiment"] == "linear_friction" and series["meta"]["rig"] == "linear"
+    assert series["meta"]["cylinder"] == "C1" and series["meta"]["sample_rate_hz"] == 200.0
+    assert series["meta"]["status"] == "cancelled" and series["rows_total"] > 100
+    r = client.get(f"/api/runs/{run['id']}/export", params={"fmt": "csv"})
+    assert r.status_code == 200 and r.text.split("\n", 1)[0] == "t,z_a,z_b,u_a,u_b,p_a,p_b,p_s,theta,omega,torque"
 
 
 def test_stored_gains_reach_the_controller() -> None:
@@ -499,7 +508,8 @@ def test_the_cpr_rig_maps_the_valve_and_fits_the_flow_model(client: TestClient) 
 
 
 @pytest.mark.slow
-def test_the_pid_autotuner_runs_on_the_rotary_rig_and_reports_beside_the_thesis(client: TestClient) -> None:
+def test_the_pid_autotuner_runs_on_the_rotary_rig_and_reports_beside_the_thesis(client: TestClient,
+                                                                               tmp_path: Path) -> None:
     """Thesis 3.6.2 through the API; a short experiment (ω_c = 6 rad/s, one analysed period)."""
     client.post("/api/engine/connect")
     r = client.post("/api/engine/tune/pid", json={"side": "b", "phase_margin_deg": 5})
@@ -516,6 +526,18 @@ def test_the_pid_autotuner_runs_on_the_rotary_rig_and_reports_beside_the_thesis(
     assert set(res["gains_fields"]) == {"kp_b", "ki_b", "kd_b"}
     assert res["thesis"]["thesis Eq 3.26"] == {"kp": 0.55, "ki": 2.042, "kd": 0.0107}  # Eq 3.26
     assert len(res["frf"]["w_rad_s"]) == 5 and min(res["frf"]["coherence"]) > 0.9
+    # the experiment's periods are its run's log, one the gap diagnosis reads
+    from app.engine.diagnosis.logs import read_log
+
+    run = client.get(f"/api/runs/{r.json()['run_id']}").json()
+    assert run["has_series"]
+    meta = client.get(f"/api/runs/{run['id']}/series", params={"max_rows": 10}).json()["meta"]
+    assert (meta["experiment"], meta["rig"], meta["human"], meta["working_pressure_bar"]) == \
+        ("pid_tuning", "rotary", False, 3.0)
+    (tmp_path / "tuning.csv").write_bytes(client.get(f"/api/runs/{run['id']}/export", params={"fmt": "csv"}).content)
+    (tmp_path / "tuning.json").write_text(json.dumps(meta))
+    log = read_log(tmp_path / "tuning")
+    assert log.duration > 5.0 and np.ptp(log.channels["p_b"]) > 0.1  # PRV-b was swept
 
 
 def test_the_dashboard_history_names_every_kind_of_run() -> None:

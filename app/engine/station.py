@@ -48,6 +48,7 @@ from app.engine.scenarios import SCENARIOS, Case, ScenarioSettings, case_control
 
 CONTROL_RATE_HZ = 200.0  # thesis 3.3
 ROTARY_IDENT_RATE_HZ = 500.0  # thesis 4.2.1
+DEFAULT_PW_BAR = 3.0  # P_w of the thesis's HIL tests [bar abs] (SPEC §1)
 MIN_PARTIAL_WINDOW_S = 1.0  # a stopped run is scored only over at least this much of its window
 PRESSURISE_S = 1.5  # both chambers brought to P_w before the user engages (as run_workout starts)
 
@@ -412,6 +413,7 @@ class Station:
         self._proc_kind = ""
         self._proc_fit: Callable[[Any], dict[str, Any]] = dict
         self._log: RunLogWriter | None = None
+        self._proc_log: RunLogWriter | None = None  # an identification's own log (not the protocol's)
         self._run_id: int | None = None
         self.last_run: dict[str, Any] | None = None
         self.fault_message = ""
@@ -584,7 +586,9 @@ class Station:
             rate_hz: Loop rate [Hz]; default 500 on the rotary rig (thesis
                 4.2.1), 200 on the others (4.2.2).
             recorder: Receives every period's log row while the procedure
-                runs (the diagnosis protocol's logs).
+                runs (the diagnosis protocol's logs). Without one, the
+                procedure's periods are logged as one run log (the fixed
+                format, exported like a workout's).
         """
         with self._lock:
             self.require("estimate", rig)
@@ -595,15 +599,39 @@ class Station:
 
                 set_program(HumanProgram.absent())  # nobody holds the handle during identification
             self._stop_engine()
+            rate = rate_hz or (ROTARY_IDENT_RATE_HZ if rig == "rotary" else LINEAR_IDENT_RATE_HZ)
             self._proc, self._proc_kind, self._proc_fit = procedure, kind, fit
-            self._run_id = self.sink.run_started(kind, {"procedure": procedure.name, **(spec or {})}, "") \
-                if self.sink else None
+            self._proc_log = None if recorder is not None else self._procedure_log(kind, rig, rate, spec or {})
+            self._run_id = self.sink.run_started(
+                kind, {"procedure": procedure.name, **(spec or {})},
+                str(self._proc_log.csv_path) if self._proc_log is not None else "") if self.sink else None
             self.supervisor.job = procedure
-            self._start_engine(rate_hz or (ROTARY_IDENT_RATE_HZ if rig == "rotary" else LINEAR_IDENT_RATE_HZ))
+            self._start_engine(rate)
             assert self.engine is not None
-            self.engine.recorder = recorder
+            self.engine.recorder = recorder if recorder is not None else self._proc_log
             self._state = State.IDENTIFYING
             return self._run_id
+
+    def _procedure_log(self, kind: str, rig: str, rate_hz: float, spec: dict[str, Any]) -> RunLogWriter:
+        """The run log of an identification: every period the procedure drives, in the fixed format.
+
+        The thesis's GUIs kept each experiment's data; a researcher refits it, plots it, or hands a
+        rotary friction sweep to the gap diagnosis as a calibration log. A procedure that names no
+        working pressure (the linear friction sweep, the valve map over supplies) is logged at the
+        thesis's 3 bar abs, and the metadata says it is that default.
+        """
+        pw = spec.get("pw_bar")
+        if pw is None and spec.get("ps_bar"):
+            pw = max(spec["ps_bar"])  # the valve map's highest supply
+        meta: dict[str, Any] = {
+            "rig": "rotary" if rig == "rotary" else "linear", "setup": rig, "sample_rate_hz": rate_hz,
+            "p_atm_bar": P_ATM / BAR, "working_pressure_bar": float(pw if pw is not None else DEFAULT_PW_BAR),
+            "experiment": kind, "human": False, "backend": self.backend.name if self.backend else "",
+            **({"working_pressure_note": "the thesis's default: the procedure sets its own pressures"}
+               if pw is None else {}),
+            **({"cylinder": self.rig.cylinder} if rig != "rotary" else {})}
+        name = kind + time.strftime("-%Y%m%d-%H%M%S") + f"-{int(time.time() * 1e3) % 1000:03d}"
+        return RunLogWriter(self.data_dir / "runs", name, meta, threaded=True)
 
     def run_protocol(self, repetitions: int = 2, scale: float = 1.0, kinds: list[str] | None = None,
                      person: str = "", notes: str = "", session_id: int | None = None) -> int | None:
@@ -951,6 +979,10 @@ class Station:
 
     def _record_procedure(self, status: str, result: dict[str, Any]) -> None:
         """Store how the procedure ended and take it off the loop."""
+        if self._proc_log is not None:  # closed first: a run read as ended has its whole log
+            self._detach_recorder(self._proc_log)
+            self._proc_log.close(status)
+            self._proc_log = None
         if self.sink is not None and self._run_id is not None:
             self.sink.run_finished(self._run_id, status, None, result)
         self.last_run = {"run_id": self._run_id, "status": status, "result": result}
