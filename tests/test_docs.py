@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -85,3 +86,42 @@ def test_the_stations_settings_table_lists_every_setting_and_flag() -> None:
     sub = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))
     flags = {o for a in sub.choices["serve"]._actions for o in a.option_strings} - {"-h", "--help"}
     assert {f for f in rows.values() if f} == flags
+
+
+def test_the_rest_api_table_lists_every_call_with_the_role_it_needs() -> None:
+    """A researcher scripts the API from docs/station.md's table: every route is there, none that is
+    gone, each with the role its dependencies demand."""
+    from collections.abc import Iterable, Iterator
+
+    from fastapi.dependencies.models import Dependant
+    from fastapi.routing import APIRoute
+
+    from app.api import auth
+    from app.api.main import create_app
+
+    def routes(rs: Iterable[Any]) -> Iterator[APIRoute]:
+        for r in rs:
+            if hasattr(r, "original_router"):  # an included router, resolved lazily by FastAPI
+                yield from routes(r.original_router.routes)
+            elif isinstance(r, APIRoute) and r.include_in_schema:
+                yield r
+
+    def calls(dep: Dependant) -> Iterator[Any]:
+        for d in dep.dependencies:
+            yield d.call
+            yield from calls(d)
+
+    def who(route: APIRoute) -> str:
+        needs = set(calls(route.dependant))
+        for dep, name in ((auth.ADMIN, "admin"), (auth.THERAPIST, "therapist"), (auth.READ, "any role")):
+            if dep.dependency in needs:
+                return name
+        return "anyone (no token)"
+
+    served = {f"{m} {r.path}": who(r) for r in routes(create_app().routes) for m in r.methods or ()}
+    text = (ROOT / "docs" / "station.md").read_text(encoding="utf-8")
+    section = text.split("\n## The REST API\n", 1)[1].split("\n## ", 1)[0]
+    listed = {m.group(1): m.group(2) for m in re.finditer(r"^\| `([A-Z]+ /\S+)` \| ([^|]+?) \|", section, re.M)}
+    assert listed == served, {k: (listed.get(k), served.get(k)) for k in listed.keys() ^ served.keys()
+                              or {k for k in served if listed[k] != served[k]}}
+    assert len(served) > 30
