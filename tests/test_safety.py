@@ -105,6 +105,23 @@ def test_the_first_fault_is_kept_as_the_cause_and_trip_works_from_another_thread
     assert s.fault is not None and s.fault.code == "estop" and s.faults_total == 1
 
 
+def test_a_fault_stamped_from_another_thread_reads_the_time_once_it_is_in_force() -> None:
+    # An e-stop read the engine's time, then latched: a caller kept waiting in between (a loaded
+    # machine) stamped the fault a period or more before the periods that still ran on with the
+    # exercise's command. The time is now read once the fault is in force, so every period whose
+    # measurement is newer than it writes the safe state.
+    s = SafetySupervisor(period=PERIOD)
+    safe_when_read: list[bool] = []
+
+    def now() -> float:
+        safe_when_read.append(s.apply(Command(2.0, 2.0, 0.0, 10.0), _meas(0.0)) == VENT_COMMAND)
+        return 1.25
+
+    f = s.trip("estop", "emergency stop (test)", now)
+    assert safe_when_read == [True] and f.t == 1.25 and s.fault == f and s.faults_total == 1
+    assert s.trip("stall", "later", lambda: 9.0) is f  # the first fault stays the cause, its time too
+
+
 @pytest.mark.parametrize(("kw", "words"), [
     ({"p_max_bar": 9.0}, "p_max_bar"),
     ({"torque_max_nm": 12.0}, "torque_max_nm"),

@@ -39,7 +39,8 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import asdict, dataclass
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 from app.engine.constants import BAR, P_ATM
@@ -221,14 +222,28 @@ class SafetySupervisor:
         """What the actuators get while a fault is latched."""
         return self.safe
 
-    def trip(self, code: str, message: str, t: float = math.nan, channel: str = "") -> Fault:
+    def trip(self, code: str, message: str, t: float | Callable[[], float] = math.nan, channel: str = "") -> Fault:
         """Latch a fault (the first one wins: it is the cause, later ones are consequences).
 
         Safe to call from any thread; the engine applies it in its next period.
+
+        Args:
+            code: See :class:`Fault`.
+            message: See :class:`Fault`.
+            t: Engine time of detection [s], or, from a thread other than the engine's, a
+                function that reads it: called once the fault is in force, so that every period
+                whose measurement is newer than the time returned applies it. A time read before
+                the latch could lag it by as long as the calling thread waited to run (an e-stop
+                stamped one period early was seen on a loaded machine).
+            channel: See :class:`Fault`.
         """
         with self._lock:
             if self._fault is None:
-                self._fault = Fault(code, message, t, channel)
+                if callable(t):
+                    self._fault = Fault(code, message, math.nan, channel)  # in force from here on
+                    self._fault = replace(self._fault, t=t())
+                else:
+                    self._fault = Fault(code, message, t, channel)
                 self.faults_total += 1
             return self._fault
 

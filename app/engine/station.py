@@ -706,8 +706,13 @@ class Station:
         Legal everywhere (never a :class:`TransitionError`): pressing it twice,
         or while disconnected, still leaves a latched fault to clear.
         """
-        fault = self.safety.trip("estop", f"emergency stop ({source})", self.engine.last_measurement.t
-                                 if self.engine and self.engine.last_measurement else math.nan)
+        engine = self.engine
+
+        def now() -> float:  # read once the fault is in force (SafetySupervisor.trip)
+            last = engine.last_measurement if engine is not None else None
+            return last.t if last is not None else math.nan
+
+        fault = self.safety.trip("estop", f"emergency stop ({source})", now)
         with self._lock:
             if self._state != State.FAULT:
                 self.fault_message = fault.message  # the first fault latched, maybe an earlier one
