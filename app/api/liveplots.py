@@ -28,12 +28,12 @@ _COL = {c: i for i, c in enumerate(LIVE_COLUMNS)}
 
 
 XSCALE: dict[str, Any] = {"x": {"time": False}}  # seconds of rig time, not a calendar date
-# A handle at rest reads exactly 0 rad/s (the encoder's steps), and uPlot ranges an all-zero series
-# over 0 … 100: a speed axis to 100 rad/s. Soft limits (uPlot's RangeConfig, mode 1: kept unless the
-# data reach past them) hold it at ±1 rad/s at least.
 # [top, right, bottom, left] px around each chart. viser's default, [0, 24, 0, 0], cut the y axis's
 # top value in half and the sign off a value wider than the axis: "-0.025" read "0.025".
 PADDING: tuple[int, int, int, int] = (10, 24, 0, 14)
+# A handle at rest reads exactly 0 rad/s (the encoder's steps), and uPlot ranges an all-zero series
+# over 0 … 100: a speed axis to 100 rad/s. Soft limits (uPlot's RangeConfig, mode 1: kept unless the
+# data reach past them) hold it at ±1 rad/s at least.
 SPEED_SCALES: dict[str, Any] = XSCALE | {"y": {"range": {"min": {"soft": -1.0, "mode": 1, "pad": 0.1},
                                                         "max": {"soft": 1.0, "mode": 1, "pad": 0.1}}}}
 
