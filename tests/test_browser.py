@@ -392,6 +392,12 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
         text = Path(dl.value.path()).read_text()
         assert text.startswith("t,") and text.count("\n") > 100  # ≥ 0.5 s of the run at 200 Hz
         assert "token" not in page.url and not errors, errors
+        # the gap diagnosis is an admin's: the page says so at once and offers no button that would 403
+        page.locator("a[href='/static/diagnosis.html']").first.click()
+        expect(page.locator("#msg")).to_contain_text("A gap diagnosis needs the admin role; this tab is signed in "
+                                                     "with a therapist token", timeout=10000)
+        expect(page.locator("#go")).to_be_disabled()
+        assert not errors, errors
     finally:
         srv.stop()
 
