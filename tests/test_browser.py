@@ -378,6 +378,11 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
         viser.close()
         page.click("[data-action=connect]")
         expect(page.locator("#state")).to_have_text("idle", timeout=60000)
+        # tuning is an admin's: the idle rig would allow it, the therapist's tab offers no button that 403s
+        expect(page.locator("#tune-pid")).to_be_disabled()
+        expect(page.locator("#pid-box .admin-note")).to_be_visible()
+        expect(page.locator("#pid-box .admin-note")).to_have_text(
+            "Needs the admin role: this tab is signed in as a therapist.")
         page.click("[data-action=start]")
         expect(page.locator("#state")).to_have_text("running", timeout=30000)
         page.wait_for_timeout(1500)  # 1.5 s of the run (300 periods) before the therapist stops it
