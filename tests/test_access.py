@@ -162,9 +162,10 @@ def test_a_therapist_runs_exercises_but_only_an_admin_identifies_tunes_and_store
             assert r.status_code != 403, (path, r.text)
         else:
             assert r.status_code == 403 and "admin role" in r.json()["detail"], (path, r.status_code)
-    # and reading is open to both
+    # and reading is open to both, the diagnosis protocol's table too (a stored report's plain words)
     for h in (t, a):
         assert secured.get("/api/runs", headers=h).status_code == 200
+        assert secured.get("/api/diagnoses/protocol", headers=h).status_code == 200
         assert secured.post("/api/forms/rotary", json={"values": {}}, headers=h).status_code == 200
     assert secured.get("/api/auth", headers=t).json() == {"required": True, "role": "therapist"}
     assert secured.get("/api/auth", headers=a).json() == {"required": True, "role": "admin"}

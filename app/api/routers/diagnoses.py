@@ -19,14 +19,16 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, HTTPException, Request
 from pydantic import Field
 
-from app.api.auth import ADMIN, AUTH_RESPONSES
+from app.api.auth import ADMIN, AUTH_RESPONSES, READ
 from app.api.deps import JobsDep, StoreDep
 from app.api.jobs import JobRefused
 from app.api.models import Documented
 from app.engine.params import EFFECT_NAMES, ParameterError
 from app.storage import Store
 
-router = APIRouter(prefix="/api/diagnoses", tags=["diagnoses"], dependencies=[ADMIN], responses=AUTH_RESPONSES)
+# running a diagnosis is an admin's; the protocol's table is documentation, read by any role (a therapist
+# opening a stored report on the diagnosis page needs its effects' plain words)
+router = APIRouter(prefix="/api/diagnoses", tags=["diagnoses"], responses=AUTH_RESPONSES)
 EffectName = Literal[
     "inertia", "vane_leakage", "external_leakage", "heat_transfer", "tube_dynamics", "presliding_friction",
     "sensor_bias", "supply_droop", "valve_dynamics",
@@ -171,7 +173,7 @@ class ProtocolTable(Documented):
 log = logging.getLogger(__name__)
 
 
-@router.get("/protocol", response_model=ProtocolTable,
+@router.get("/protocol", response_model=ProtocolTable, dependencies=[READ],
             summary="The diagnosis protocol: each experiment and the effects it makes visible")
 def protocol_table() -> ProtocolTable:
     from app.engine.diagnosis.protocol import DESCRIPTION, PREROLL_S, VISIBLE
@@ -195,7 +197,7 @@ def _checked_bounds(bounds: dict[str, tuple[float, float]]) -> dict[str, tuple[f
         raise ParameterError(f"bounds: {exc}") from None
 
 
-@router.post("/bounds", response_model=BoundsChecked,
+@router.post("/bounds", response_model=BoundsChecked, dependencies=[ADMIN],
              summary="Check recalibration ranges with the rules a diagnosis applies (nothing runs); 422 says why")
 def check_bounds(req: BoundsCheck) -> BoundsChecked:
     # the page asks before the protocol runs on the rig: a range refused only when the diagnosis is
@@ -249,7 +251,7 @@ def _common_who(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-@router.post("", response_model=DiagnosisStarted, status_code=202,
+@router.post("", response_model=DiagnosisStarted, status_code=202, dependencies=[ADMIN],
              responses={409: {"description": "A diagnosis is already running, or the server is stopping"}},
              summary="Start a gap diagnosis (protocol on the simulator, or stored runs); poll GET /api/runs/{id}")
 def start(req: DiagnosisRequest, store: StoreDep, jobs: JobsDep, request: Request) -> DiagnosisStarted:
