@@ -566,13 +566,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "nominal values down less)")
     q.add_argument("--seed", type=int, default=0)
     q.set_defaults(fn=_protocol)
-    v = sub.add_parser("serve", help="start the lab station server on the simulated plant")
+    v = sub.add_parser("serve", help="start the lab station server (on the simulated plant unless a hardware "
+                       "configuration names the rig)")
     v.add_argument("--host", default=None, help="bind address (default: $CWRR_HOST, else 127.0.0.1; any other "
                    "than loopback needs a token, see CWRR_ADMIN_TOKEN)")
     v.add_argument("--port", type=int, default=None, help="HTTP port (default: $CWRR_PORT, else 8000)")
     v.add_argument("--viser-port", type=int, default=None,
                    help="port of the live plots, 0 for none (default: $CWRR_VISER_PORT, else 8080)")
-    v.add_argument("--hardware", default="", help="YAML hardware configuration (default: the simulator)")
+    v.add_argument("--hardware", default="", help="YAML hardware configuration (default: $CWRR_HARDWARE, else the "
+                   "simulator)")
     v.add_argument("--data-dir", default="", help="where run logs and the SQLite store live (default: "
                    "$CWRR_DATA_DIR, else ./data)")
     v.add_argument("--viser-public-url", default="", help="where browsers reach the live plots when that is not "
