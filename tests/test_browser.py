@@ -402,6 +402,12 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
         expect(page.locator("#msg")).to_contain_text("A gap diagnosis needs the admin role; this tab is signed in "
                                                      "with a therapist token", timeout=10000)
         expect(page.locator("#go")).to_be_disabled()
+        # a stored report opened there keeps its own message (here: that there is no such run)
+        page.goto(base + "/static/diagnosis.html?report=99999")
+        expect(page.locator("#msg")).to_contain_text("run 99999: ", timeout=10000)
+        page.wait_for_timeout(500)
+        expect(page.locator("#msg")).not_to_contain_text("admin role")
+        expect(page.locator("#go")).to_be_disabled()
         assert not errors, errors
     finally:
         srv.stop()
