@@ -335,7 +335,16 @@ def test_a_researcher_tunes_a_pressure_loop_and_exercises_with_the_gains(station
     expect(page.locator("#estimate-dcv")).to_be_enabled()
     expect(page.locator("#estimate")).to_be_disabled()  # friction identification is not for this set-up
     expect(page.locator("#start")).to_be_disabled()
+    # why, and what the live chart's first trace is there: the cylinder's load cell, in newtons
+    expect(page.locator("#start-msg")).to_have_text(
+        "Exercises run on the forearm robot: disconnect, choose it under Rig and connect.")
+    expect(page.locator("#live-force")).to_have_text("■ cylinder force [N]")
+    expect(page.locator("#live-target")).to_be_hidden()
     page.click("[data-action=disconnect]")
+    expect(page.locator("#state")).to_have_text("disconnected")
+    page.select_option("#rig", "rotary")
+    expect(page.locator("#live-force")).to_have_text("■ interaction torque [N·m]")
+    expect(page.locator("#start-msg")).to_have_text("")
     assert not errors, errors
 
 
