@@ -384,6 +384,27 @@ def test_the_linear_rig_runs_the_linear_identification_and_refuses_workouts(clie
     assert r.status_code == 200 and r.text.split("\n", 1)[0] == "t,z_a,z_b,u_a,u_b,p_a,p_b,p_s,theta,omega,torque"
 
 
+def test_an_identification_cut_short_by_a_server_shutdown_leaves_its_log_whole_and_marked(tmp_path: Path) -> None:
+    from fastapi.testclient import TestClient
+
+    from app.api.main import create_app
+    from app.api.settings import Settings
+
+    app = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))
+    with TestClient(app) as c:
+        c.post("/api/engine/connect", json={"rig": "linear", "cylinder": "C1"})
+        r = c.post("/api/engine/estimate/linear", json={"stroke_mm": 225, "piston_diameter_mm": 25,
+                                                        "rod_diameter_mm": 10})
+        assert r.status_code == 200
+        wait_engine(c, lambda s: (s["progress"] or {}).get("k", 0) >= 1, timeout=30.0)
+        time.sleep(1.0)  # a second of the first experiment (the paced loop: ≈ 200 periods)
+    # the lifespan's end stopped the loop mid-experiment
+    (meta_path,) = (tmp_path / "runs").glob("linear_friction-*.json")
+    meta = json.loads(meta_path.read_text())
+    rows = meta_path.with_suffix(".csv").read_text().splitlines()
+    assert meta["status"] == "interrupted" and meta["rows"] == len(rows) - 1 > 100
+
+
 def test_stored_gains_reach_the_controller() -> None:
     from app.engine.control import pipeline as cpl
     from app.engine.params import ParameterError

@@ -805,6 +805,9 @@ class Station:
             if self._proc is not None:
                 self._proc.cancel()
             self._shutdown()
+            if self._proc_log is not None:  # the loop has stopped: its last rows are in, the log says why it ends
+                self._proc_log.close("interrupted")
+                self._proc_log = None
             self._state = State.DISCONNECTED
 
     # --------------------------------------------------------------- reports
