@@ -50,6 +50,7 @@ import dataclasses
 import math
 import os
 from collections import OrderedDict
+from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -352,6 +353,22 @@ def settled(e: Experiment, hold_s: float, tol_v: float = 0.05) -> np.ndarray:
     idx = np.arange(len(changed))
     since = idx - np.maximum.accumulate(np.where(changed, idx, 0))  # samples since the last change
     return np.asarray(since * e.dt >= hold_s)
+
+
+def share_agreeing(per_log: Iterable[tuple[np.ndarray, np.ndarray]]) -> tuple[float, int]:
+    """The share of the samples a convention check uses that agree with it, over every log.
+
+    Args:
+        per_log: For each log, the samples the check uses and, per sample, whether it agrees.
+
+    Returns:
+        The share that agree, and how many samples were used (1.0 and 0 when there is none).
+    """
+    agree = n = 0
+    for use, ok in per_log:
+        n += int(use.sum())
+        agree += int(ok[use].sum())
+    return (agree / n if n else 1.0), n
 
 
 class RotaryFamily:
@@ -662,15 +679,14 @@ class RotaryFamily:
             The fraction of such samples that agree, and how many there were
             (1.0 and 0 when there is none).
         """
-        agree = n = 0
-        for e in exps:
+        def per_log(e: Experiment) -> tuple[np.ndarray, np.ndarray]:
             ch = e.channels
             pneu = -self.pneumatic_torque(ch)  # what a user holding the handle against it measures
             tq = ch["torque"]
             use = (np.abs(pneu) > min_nm) & (np.abs(tq) > 0.25 * min_nm) & ~self.at_stops(ch["theta"])
-            n += int(use.sum())
-            agree += int((np.sign(tq[use]) == np.sign(pneu[use])).sum())
-        return (agree / n if n else 1.0), n
+            return use, np.sign(tq) == np.sign(pneu)
+
+        return share_agreeing(map(per_log, exps))
 
     def dcv_wiring_agreement(self, exps: list[Experiment], side: str, min_z_v: float = 1.0,
                              settled_s: float = 0.5) -> tuple[float, int]:
@@ -690,8 +706,7 @@ class RotaryFamily:
             The fraction of such samples that agree, and how many there were
             (1.0 and 0 when there is none).
         """
-        agree = n = 0
-        for e in exps:
+        def per_log(e: Experiment) -> tuple[np.ndarray, np.ndarray]:
             u = e.inputs
             z, valve, p = u[f"z_{side}"], u[f"u_{side}"], e.channels[f"p_{side}"]
             fills = (5.0 - valve if side == "a" else valve - 5.0) >= DCV_OPEN_V
@@ -699,9 +714,9 @@ class RotaryFamily:
             use = (fills | vents) & (z >= min_z_v) & settled(e, settled_s)
             p_atm = float(e.meta.get("p_atm_bar", 1.01325))
             near_regulator = np.abs(p - (p_atm + z)) < np.abs(p - p_atm)
-            n += int(use.sum())
-            agree += int((near_regulator == fills)[use].sum())
-        return (agree / n if n else 1.0), n
+            return use, near_regulator == fills
+
+        return share_agreeing(map(per_log, exps))
 
     def pressure_order_agreement(self, exps: list[Experiment], min_apart_v: float = 0.5,
                                  settled_s: float = 0.5) -> tuple[float, int]:
@@ -720,15 +735,14 @@ class RotaryFamily:
             The fraction of such samples that agree, and how many there were
             (1.0 and 0 when there is none).
         """
-        agree = n = 0
-        for e in exps:
+        def per_log(e: Experiment) -> tuple[np.ndarray, np.ndarray]:
             u = e.inputs
             dz = u["z_a"] - u["z_b"]
             use = ((5.0 - u["u_a"] >= DCV_OPEN_V) & (u["u_b"] - 5.0 >= DCV_OPEN_V) & (np.abs(dz) >= min_apart_v)
                    & settled(e, settled_s))
-            n += int(use.sum())
-            agree += int((np.sign(e.channels["p_a"] - e.channels["p_b"])[use] == np.sign(dz[use])).sum())
-        return (agree / n if n else 1.0), n
+            return use, np.sign(e.channels["p_a"] - e.channels["p_b"]) == np.sign(dz)
+
+        return share_agreeing(map(per_log, exps))
 
     def dissipation(self, exps: list[Experiment], torque_measured: bool = True) -> tuple[float, int]:
         """The share of the power the torques on the vane lose to its motion, net (−1 … 1).

@@ -305,13 +305,13 @@ def read_conventions(family: RotaryFamily, exps: list[Experiment]) -> Convention
     commands' order and the torque and the angle need no reversing.
     """
 
-    raw = [(dict(e.inputs), dict(e.channels)) for e in exps]
+    raw = _snapshot(exps)
     conv = _read_in_order(family, exps, swap_first=False)
     if conv.torque_reversed and conv.angle_reversed and conv.pressure_samples < CONVENTION_MIN_SAMPLES:
         # what swapped pressures look like when no settled fill showed their order (a valve wired the
         # other way round hides the fills): read them swapped from the start, and keep that reading if
         # its fills then stand in their commands' order and the torque and the angle need no reversing
-        read = [(dict(e.inputs), dict(e.channels)) for e in exps]
+        read = _snapshot(exps)
         _restore(exps, raw)
         alt = _read_in_order(family, exps, swap_first=True)
         if (alt.pressure_samples >= CONVENTION_MIN_SAMPLES and alt.pressure_agreement <= PRESSURE_ORDER_AGREEMENT
@@ -321,7 +321,15 @@ def read_conventions(family: RotaryFamily, exps: list[Experiment]) -> Convention
     return conv
 
 
-def _restore(exps: list[Experiment], state: list[tuple[dict[str, np.ndarray], dict[str, np.ndarray]]]) -> None:
+_Snapshot = list[tuple[dict[str, np.ndarray], dict[str, np.ndarray]]]
+
+
+def _snapshot(exps: list[Experiment]) -> _Snapshot:
+    """Each log's inputs and channels as they stand (the checks replace arrays, never write into them)."""
+    return [(dict(e.inputs), dict(e.channels)) for e in exps]
+
+
+def _restore(exps: list[Experiment], state: _Snapshot) -> None:
     for e, (inputs, channels) in zip(exps, state, strict=True):
         e.inputs, e.channels = dict(inputs), dict(channels)
 
