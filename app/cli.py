@@ -6,6 +6,7 @@ import argparse
 import math
 import os
 import signal
+import socket
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -308,6 +309,12 @@ def _serve(args: argparse.Namespace) -> int:
         settings = Settings(**{k: v for k, v in given if v not in (None, "")})
     except ValidationError as exc:
         raise ValueError(validation_reasons(exc, "settings")) from None
+    # before the minute of compiling and the station's start, not after them: a second server on a
+    # port in use had built its station and then left with uvicorn's bare "address already in use"
+    for flag, port in (("--port", settings.port), ("--viser-port", settings.viser_port)):
+        if port and (why := _port_taken(settings.host, port)):
+            raise ValueError(f"{flag} {port}: cannot listen on {settings.host}:{port} ({why}); is another "
+                             f"cwrr serve running? Stop it or choose another port")
     if settings.start_engine and settings.auto_connect:
         _compile_first()
     if settings.realtime:
@@ -319,6 +326,26 @@ def _serve(args: argparse.Namespace) -> int:
             print(f"cwrr serve: normal scheduling ({why}); /api/health reports the loop's jitter", file=sys.stderr)
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
     return 0
+
+
+def _port_taken(host: str, port: int) -> str | None:
+    """Why a TCP server could not listen on ``host:port`` now, or None when it could.
+
+    Binds as uvicorn does (SO_REUSEADDR, so a port left in TIME_WAIT by a
+    server just stopped counts as free) and closes at once.
+    """
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except OSError as exc:
+        return f"host not resolved: {exc}"
+    family, kind, proto, _, addr = infos[0]
+    with socket.socket(family, kind, proto) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(addr)
+        except OSError as exc:
+            return exc.strerror or str(exc)
+    return None
 
 
 def _compile_first() -> None:

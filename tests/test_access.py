@@ -14,6 +14,7 @@ from pydantic import ValidationError
 from app.api.main import create_app
 from app.api.settings import Settings
 from app.cli import main as cli_main
+from tests.conftest import free_port
 
 ADMIN = "adm-" + "a1b2c3d4e5f6a7b8c9d0"
 THERAPIST = "thr-" + "0f9e8d7c6b5a4f3e2d1c"
@@ -102,11 +103,39 @@ def test_cwrr_serve_takes_its_address_from_the_environment_unless_a_flag_names_i
     assert cli_main(["serve"]) == 2 and served == []  # the environment's all-interfaces bind, refused without a token
     assert "without authentication" in capsys.readouterr().err
     monkeypatch.setenv("CWRR_ADMIN_TOKEN", ADMIN)
-    monkeypatch.setenv("CWRR_PORT", "8123")
+    env_port, port, viser_port = free_port(), free_port(), free_port()  # serve checks that each is free
+    monkeypatch.setenv("CWRR_PORT", str(env_port))
     monkeypatch.setenv("CWRR_VISER_PORT", "0")
     assert cli_main(["serve"]) == 0
-    assert cli_main(["serve", "--host", "127.0.0.1", "--port", "8124", "--viser-port", "8081"]) == 0  # flags win
-    assert served == [("0.0.0.0", 8123, 0), ("127.0.0.1", 8124, 8081)]
+    assert cli_main(["serve", "--host", "127.0.0.1", "--port", str(port), "--viser-port", str(viser_port)]) == 0
+    assert served == [("0.0.0.0", env_port, 0), ("127.0.0.1", port, viser_port)]  # flags win
+
+
+@pytest.mark.parametrize("flag", ["--port", "--viser-port"])
+def test_cwrr_serve_on_a_port_in_use_exits_at_once_with_the_reason(
+        flag: str, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """A second server on a taken port had compiled, built its station, and left with uvicorn's bare
+    "address already in use" (exit 3)."""
+    import socket
+
+    import uvicorn
+
+    served: list[int] = []
+    monkeypatch.setattr(uvicorn, "run", lambda app, host, port, log_level: served.append(port))
+    monkeypatch.setenv("CWRR_AUTO_CONNECT", "false")
+    monkeypatch.setenv("CWRR_REALTIME", "false")
+    monkeypatch.setenv("CWRR_DATA_DIR", str(tmp_path))
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        busy = taken.getsockname()[1]
+        ports = {"--port": str(free_port()), "--viser-port": str(free_port())} | {flag: str(busy)}
+        assert cli_main(["serve", *[x for kv in ports.items() for x in kv]]) == 2
+    err = capsys.readouterr().err
+    assert f"{flag} {busy}: cannot listen on 127.0.0.1:{busy}" in err and "another cwrr serve" in err, err
+    assert served == []
+    # once the port is free again, the same command serves
+    assert cli_main(["serve", *[x for kv in ports.items() for x in kv]]) == 0 and served == [int(ports["--port"])]
 
 
 def test_cwrr_serve_refuses_a_bad_public_url_flag_with_the_reason(capsys: pytest.CaptureFixture[str]) -> None:

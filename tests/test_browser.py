@@ -183,6 +183,9 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     assert 0.0 < mae < 0.5, mae  # scored over the part of the window reached (live SC-1 PID: ≈ 0.13 N·m)
     row = page.locator("#runs tbody tr").first
     expect(row).to_contain_text("P-007")
+    # the kind in plain words; the API's code, which /api/runs?kind= takes, in the tooltip
+    expect(row.locator("td").nth(1)).to_have_text("Exercise")
+    expect(row.locator("td").nth(1)).to_have_attribute("title", "kind=workout")
     run_id = int(row.get_attribute("data-run") or 0)
     # the whole exercise stays on the page once the live chart has moved on: torque against target,
     # from the stored run, decimated to what the chart can draw
