@@ -11,11 +11,14 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from app.storage import strict_json
+
+if TYPE_CHECKING:
+    from app.api.settings import Settings
 
 
 def _sim(args: argparse.Namespace) -> int:
@@ -292,10 +295,8 @@ def _identify_pid(args: argparse.Namespace) -> int:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    import uvicorn
     from pydantic import ValidationError
 
-    from app.api.main import create_app
     from app.api.settings import Settings
     from app.engine.params import validation_reasons
 
@@ -315,6 +316,25 @@ def _serve(args: argparse.Namespace) -> int:
         if port and (why := _port_taken(settings.host, port)):
             raise ValueError(f"{flag} {port}: cannot listen on {settings.host}:{port} ({why}); is another "
                              f"cwrr serve running? Stop it or choose another port")
+    from app.storage import DataDirInUse, claim_data_dir, release_data_dir
+
+    # one station per data folder, told before the minute of compiling too
+    try:
+        claim_data_dir(settings.data_dir)  # held while the server runs; the lifespan's claim nests in it
+    except DataDirInUse as exc:
+        raise ValueError(str(exc)) from None
+    try:
+        return _serve_claimed(settings)
+    finally:
+        release_data_dir(settings.data_dir)
+
+
+def _serve_claimed(settings: Settings) -> int:
+    """Compile if need be and run uvicorn (the data folder is claimed)."""
+    import uvicorn
+
+    from app.api.main import create_app
+
     if settings.start_engine and settings.auto_connect:
         _compile_first()
     if settings.realtime:

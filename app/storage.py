@@ -17,6 +17,7 @@ from __future__ import annotations
 import fcntl
 import json
 import math
+import os
 import sqlite3
 import threading
 import time
@@ -113,11 +114,81 @@ def _redact(url: str) -> str:
     return f"{scheme}://{cred.split(':', 1)[0]}:***@{tail}"
 
 
+class DataDirInUse(RuntimeError):
+    """Another process holds the data folder (its station is running)."""
+
+
+_CLAIMS: dict[Path, list[Any]] = {}  # resolved folder → [open lock file, claims in this process]
+_CLAIMS_LOCK = threading.Lock()
+
+
+def claim_data_dir(path: str | Path) -> None:
+    """Hold the data folder ``path`` for this process, or raise :class:`DataDirInUse`.
+
+    One station per folder: two would each mark the other's running runs
+    interrupted and repair (cut back) logs still being written, and on a
+    rig's configuration both would drive it. The claim is an exclusive
+    ``flock`` on ``PATH/.station.lock``, which the kernel drops when the
+    process ends however it ends, so a killed station leaves no stale lock.
+    Claims in one process nest (the command line holds the folder from
+    before compiling; the server's lifespan claims it again).
+
+    Args:
+        path: The station's data folder (created if missing).
+
+    Raises:
+        DataDirInUse: Another process holds it; the message names its pid.
+        ValueError: The folder cannot be made or written.
+    """
+    folder = Path(path).resolve()
+    with _CLAIMS_LOCK:
+        if folder in _CLAIMS:
+            _CLAIMS[folder][1] += 1
+            return
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            fh = open(folder / ".station.lock", "a+", encoding="utf-8")  # held open: the lock lives with it
+        except OSError as exc:
+            raise ValueError(f"data folder {folder} cannot be written ({exc.strerror or exc}); "
+                             f"give the station one it may write (CWRR_DATA_DIR or --data-dir)") from None
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.seek(0)
+            holder = fh.read().strip() or "unknown"
+            fh.close()
+            raise DataDirInUse(f"data folder {folder} is in use by another station (pid {holder}); stop it, "
+                               f"or give this one its own folder (CWRR_DATA_DIR or --data-dir)") from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"{os.getpid()}\n")
+        fh.flush()
+        _CLAIMS[folder] = [fh, 1]
+
+
+def release_data_dir(path: str | Path) -> None:
+    """Give back one :func:`claim_data_dir` of ``path``; the last one unlocks the folder."""
+    folder = Path(path).resolve()
+    with _CLAIMS_LOCK:
+        claim = _CLAIMS.get(folder)
+        if claim is None:
+            return
+        claim[1] -= 1
+        if claim[1] <= 0:
+            del _CLAIMS[folder]
+            claim[0].close()  # closing the file drops the flock
+
+
 class Store:
     """Runs, parameter sets and sessions (thread-safe: one connection behind a lock).
 
     Args:
         url: ``sqlite:///PATH`` (the folder is created) or ``postgresql://…``.
+
+    Attributes:
+        interrupted_at_open: ``(run id, log CSV path)`` of each run found still
+            running when the store opened (cut short by a crash or kill), now
+            marked ``interrupted``.
     """
 
     def __init__(self, url: str) -> None:
@@ -163,8 +234,11 @@ class Store:
                     if col not in have[table]:
                         self._db.execute(f"ALTER TABLE {table} ADD COLUMN {col} " + kind.format(**_SQLITE))
         # a run still "running" at start-up was cut short by a crash or kill;
-        # its log holds everything up to the last flush
-        self._exec("UPDATE runs SET status='interrupted' WHERE status='running'")
+        # its log holds everything up to the last flush (the station repairs the logs of these:
+        # app.engine.runlog.repair_log)
+        self.interrupted_at_open: list[tuple[int, str]] = [
+            (int(r["id"]), str(r["log_csv"] or "")) for r in
+            self._exec("UPDATE runs SET status='interrupted' WHERE status='running' RETURNING id, log_csv")]
 
     def close(self) -> None:
         """Close the connection."""

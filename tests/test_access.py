@@ -138,6 +138,34 @@ def test_cwrr_serve_on_a_port_in_use_exits_at_once_with_the_reason(
     assert cli_main(["serve", *[x for kv in ports.items() for x in kv]]) == 0 and served == [int(ports["--port"])]
 
 
+def test_cwrr_serve_on_a_data_folder_another_station_holds_exits_at_once_with_the_reason(
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Two stations on one folder would each mark the other's running run interrupted, cut back its
+    log as a dead one, and on a rig's configuration both drive it."""
+    import subprocess
+    import sys
+
+    import uvicorn
+
+    served: list[int] = []
+    monkeypatch.setattr(uvicorn, "run", lambda app, host, port, log_level: served.append(port))
+    monkeypatch.setenv("CWRR_AUTO_CONNECT", "false")
+    monkeypatch.setenv("CWRR_REALTIME", "false")
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from app.storage import claim_data_dir; "
+                               "claim_data_dir(sys.argv[1]); print('held', flush=True); time.sleep(60)",
+                               str(tmp_path)], stdout=subprocess.PIPE, text=True, cwd=Path(__file__).parents[1])
+    argv = ["serve", "--port", str(free_port()), "--viser-port", "0", "--data-dir", str(tmp_path)]
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        assert cli_main(argv) == 2 and served == []
+        err = capsys.readouterr().err
+        assert f"in use by another station (pid {holder.pid})" in err and "CWRR_DATA_DIR" in err, err
+    finally:
+        holder.kill()
+        holder.wait(10)
+    assert cli_main(argv) == 0 and len(served) == 1
+
+
 def test_cwrr_serve_refuses_a_bad_public_url_flag_with_the_reason(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["serve", "--port", "1", "--viser-public-url", "ftp://station:9080"]) == 2
     err = capsys.readouterr().err

@@ -20,6 +20,7 @@ from pathlib import Path
 import httpx2 as httpx
 import pytest
 
+from app.engine.diagnosis.logs import read_log
 from tests.conftest import ServedStation as Server
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(sys.platform == "win32", reason="SIGKILL")]
@@ -64,6 +65,12 @@ def test_kill_9_mid_run_loses_at_most_the_last_second_and_the_run_is_listed_as_i
     # the metadata is whole JSON (written atomically) and the CSV exports
     meta_files = list(tmp_path.rglob("*.json"))
     assert meta_files and all(isinstance(json.loads(p.read_text()), dict) for p in meta_files)
+    # the log pair itself says so too, and cut back to whole rows it reads as any log does (the
+    # gap diagnosis, `cwrr diagnose`): its JSON had said "running" for good
+    (log_csv,) = (tmp_path / "runs").glob("run-*.csv")
+    meta = json.loads(log_csv.with_suffix(".json").read_text())
+    assert meta["status"] == "interrupted" and meta["rows"] == len(rows), (meta["status"], meta.get("rows"))
+    assert len(read_log(log_csv).t) == len(rows)
     csv = httpx.get(f"{second.url}/api/runs/{run_id}/export?fmt=csv", timeout=30)
     assert csv.status_code == 200 and csv.text.count("\n") >= len(rows)
     # and the station is usable again: a new run starts on the restarted server

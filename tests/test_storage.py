@@ -75,8 +75,82 @@ def test_runs_sessions_and_parameter_sets_round_trip(url: str) -> None:
 def test_a_run_left_running_by_a_crash_is_interrupted_on_reopen(url: str) -> None:
     s = Store(url)
     rid = s.run_started("workout", {"scenario": "SC-1"}, "")
+    done = s.run_started("workout", {"scenario": "SC-1"}, "/logs/done.csv")
+    s.run_finished(done, "complete", None, None)
     s.close()  # no run_finished: the process died
-    assert Store(url).run(rid)["status"] == "interrupted"  # type: ignore[index]
+    again = Store(url)
+    assert again.run(rid)["status"] == "interrupted"  # type: ignore[index]
+    assert again.run(done)["status"] == "complete"  # type: ignore[index]
+    assert again.interrupted_at_open == [(rid, "")]  # what the station repairs the logs of
+    assert Store(url).interrupted_at_open == []  # once
+
+
+def _log_cut_short(tmp_path: Path, rows: int) -> Path:
+    """A run log whose writer died: ``rows`` whole rows, then half a row, its JSON still "running"."""
+    from app.engine.runlog import RunLogWriter
+
+    w = RunLogWriter(tmp_path, "cut", {"rig": "rotary", "sample_rate_hz": 200.0, "p_atm_bar": 1.013,
+                                       "working_pressure_bar": 3.0, "experiment": "isotonic", "human": True})
+    for i in range(rows):
+        w.append([i / 200, 2.0, 2.0, 5.0, 5.0, 2.0, 2.0, 6.0, 0.01 * i, 0.0, 0.1])
+    w.flush()
+    w._fh.write("1.000000,2,2,5,5,2.0")  # the process is killed here, in the middle of a row
+    w._fh.flush()
+    return w.csv_path
+
+
+def test_a_log_cut_short_is_repaired_to_its_whole_rows_and_marked_interrupted(tmp_path: Path) -> None:
+    import json
+
+    from app.engine.diagnosis.logs import LogFormatError, read_log
+    from app.engine.runlog import repair_log
+
+    csv = _log_cut_short(tmp_path, 150)
+    with pytest.raises(LogFormatError, match=r"a row is not 11 numbers .* still says \"running\".*repair"):
+        read_log(csv)
+    assert json.loads(csv.with_suffix(".json").read_text())["status"] == "running"
+    assert repair_log(csv) == 150
+    meta = json.loads(csv.with_suffix(".json").read_text())
+    assert meta["status"] == "interrupted" and meta["rows"] == 150 and meta["recovered_unix"] > 0
+    exp = read_log(csv)
+    assert len(exp.t) == 150 and exp.channels["theta"][-1] == pytest.approx(1.49)
+    assert repair_log(csv) == 150 and csv.read_bytes().endswith(b"\n")  # a second repair changes nothing
+    # an operating system that went down before its fsync: the unsynced pages read back as zeros
+    # (whole rows after them included), and a log complete before them keeps its status
+    with open(csv, "ab") as fh:
+        fh.write(b"\0" * 700 + b"1.5,2,2,5,5,2,2,6,0,0,0.1\n")
+    meta["status"] = "complete"
+    csv.with_suffix(".json").write_text(json.dumps(meta))
+    assert repair_log(csv) == 150 and len(read_log(csv).t) == 150
+    assert json.loads(csv.with_suffix(".json").read_text())["status"] == "complete"
+    assert repair_log(tmp_path / "none.csv") is None
+
+
+def test_one_station_per_data_folder_and_a_killed_one_leaves_no_lock(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from app.storage import DataDirInUse, claim_data_dir, release_data_dir
+
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from app.storage import claim_data_dir; "
+                               "claim_data_dir(sys.argv[1]); print('held', flush=True); time.sleep(60)",
+                               str(tmp_path)], stdout=subprocess.PIPE, text=True, cwd=Path(__file__).parents[1])
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        with pytest.raises(DataDirInUse, match=rf"in use by another station \(pid {holder.pid}\).*CWRR_DATA_DIR"):
+            claim_data_dir(tmp_path)
+    finally:
+        holder.kill()
+        holder.wait(10)
+    claim_data_dir(tmp_path)  # the kernel dropped the dead holder's lock
+    claim_data_dir(tmp_path / ".")  # claims in one process nest
+    release_data_dir(tmp_path)
+    release_data_dir(tmp_path)
+    release_data_dir(tmp_path)  # one release too many does nothing
+    assert (tmp_path / ".station.lock").read_text().strip().isdigit()
+    (tmp_path / "a-file").write_text("")
+    with pytest.raises(ValueError, match=r"data folder .*a-file/data cannot be written .*CWRR_DATA_DIR"):
+        claim_data_dir(tmp_path / "a-file" / "data")
 
 
 def test_an_unreachable_postgresql_is_refused_without_leaking_the_password() -> None:

@@ -25,12 +25,29 @@ from app.api.viser_gate import TICKET_S, Signer, ViserGate
 from app.engine.hardware.config import load_config
 from app.engine.params import ParameterError
 from app.engine.station import Station, TransitionError
-from app.storage import Store
+from app.storage import Store, claim_data_dir, release_data_dir
 
 if TYPE_CHECKING:
     from app.api.liveplots import LivePlots
 
 STATIC = Path(__file__).resolve().parent.parent / "static"
+
+
+def repair_interrupted_logs(store: Store, data_dir: str | Path) -> list[int]:
+    """Repair the logs of the runs a crash or kill left running (those in this station's folder).
+
+    Returns:
+        The ids of the runs whose log was repaired.
+    """
+    from app.engine.runlog import repair_log
+
+    folder = Path(data_dir).resolve()
+    repaired = []
+    for run_id, csv in store.interrupted_at_open:
+        path = Path(csv).resolve() if csv else None
+        if path is not None and path.is_relative_to(folder) and repair_log(path) is not None:
+            repaired.append(run_id)
+    return repaired
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -42,7 +59,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        claim_data_dir(settings.data_dir)  # one station per data folder (cwrr serve claimed it already)
+        try:
+            async with _station_lifespan(app):
+                yield
+        finally:
+            release_data_dir(settings.data_dir)
+
+    @asynccontextmanager
+    async def _station_lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = Store(settings.db_url)
+        repair_interrupted_logs(store, settings.data_dir)
         station = Station(data_dir=settings.data_dir, sink=store,
                           rate_hz=hardware.rate_hz if hardware is not None else settings.rate_hz,
                           realtime=settings.realtime, stall_s=settings.watchdog_s,

@@ -13,6 +13,12 @@ hand-over of rows to the kernel may wait for it. The JSON metadata is written
 atomically (temporary file + rename) at the start with ``"status":
 "running"`` and rewritten at the end with ``"complete"`` (or
 ``"interrupted"``), so a reader never sees a half-written JSON.
+
+A log left ``"running"`` by a killed process, or by an operating system that
+went down before its last ``fsync``, can end in a partial line or in zeros
+where unsynced pages were lost; :func:`repair_log` (run by the station on the
+next start for each run the store finds still running) cuts it back to its
+last whole row and marks it ``"interrupted"``, so every reader takes it.
 """
 
 from __future__ import annotations
@@ -179,3 +185,43 @@ class RunLogWriter:
 
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
         self.close("complete" if exc_type is None else "interrupted")
+
+
+def repair_log(csv_path: Path | str) -> int | None:
+    """Cut a log whose writer died back to its last whole row; mark it ``"interrupted"``.
+
+    The rows after the first NUL byte (a page the operating system had not
+    synced reads back as zeros) and a last line without its newline are
+    dropped: a row is written with its newline in one piece, so a line that
+    has it is whole. The JSON, if it still says ``"running"``, is rewritten
+    atomically with ``"status": "interrupted"``, the rows kept and
+    ``recovered_unix``. Only for a log nobody writes any more.
+
+    Args:
+        csv_path: The log's CSV.
+
+    Returns:
+        The whole rows kept, or None when the CSV does not exist.
+    """
+    path = Path(csv_path)
+    if not path.is_file():
+        return None
+    with open(path, "rb+") as fh:
+        data = fh.read()
+        nul = data.find(b"\0")
+        whole = data[: nul if nul >= 0 else len(data)]
+        end = whole.rfind(b"\n") + 1
+        if end < len(data):
+            fh.truncate(end)
+            fh.flush()
+            os.fsync(fh.fileno())
+    rows = max(data[:end].count(b"\n") - 1, 0)  # less the header
+    meta_path = path.with_suffix(".json")
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return rows  # no sidecar to mark (written atomically: there or not)
+    if isinstance(meta, dict) and meta.get("status") == "running":
+        meta.update(status="interrupted", rows=rows, recovered_unix=time.time())
+        atomic_write_text(meta_path, json.dumps(meta, indent=1))
+    return rows

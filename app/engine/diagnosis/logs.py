@@ -304,7 +304,10 @@ def read_log(path: str | Path) -> Experiment:
         try:
             data = np.loadtxt(fh, delimiter=",", ndmin=2)
         except ValueError as exc:
-            raise LogFormatError(f"{name}: a row is not {len(header)} numbers ({exc})") from None
+            cut = (" — its JSON still says \"running\": a writer that died mid-row leaves a partial last row; "
+                   "the station repairs its own logs when it next starts (runlog.repair_log)"
+                   if meta.get("status") == "running" else "")
+            raise LogFormatError(f"{name}: a row is not {len(header)} numbers ({exc}){cut}") from None
     if data.size and data.shape[1] != len(header):
         raise LogFormatError(f"{name}: rows have {data.shape[1]} values, the header {len(header)}")
     check_frame(name, header, data, meta)
