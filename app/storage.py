@@ -65,7 +65,8 @@ CREATE TABLE IF NOT EXISTS runs (
     person TEXT NOT NULL DEFAULT '',
     notes TEXT NOT NULL DEFAULT '',
     session_id {int},
-    notes_edited {real}
+    notes_edited {real},
+    station TEXT NOT NULL DEFAULT ''
 );
 CREATE TABLE IF NOT EXISTS param_sets (
     id {pk},
@@ -88,7 +89,8 @@ _SQLITE = {"pk": "INTEGER PRIMARY KEY AUTOINCREMENT", "real": "REAL", "int": "IN
 _POSTGRES = {"pk": "BIGSERIAL PRIMARY KEY", "real": "DOUBLE PRECISION", "int": "BIGINT"}
 _ADDED = (("runs", "session_id", "{int}"),  # sessions linked to runs
           ("runs", "notes_edited", "{real}"), ("sessions", "notes_edited", "{real}"),  # notes edited afterwards
-          ("sessions", "notes_at_open", "TEXT"))
+          ("sessions", "notes_at_open", "TEXT"),
+          ("runs", "station", "TEXT NOT NULL DEFAULT ''"))  # which station's run: one database, several rigs
 """Columns added since the first schema: (table, column, type): a store made before gains them on open."""
 
 
@@ -184,15 +186,20 @@ class Store:
 
     Args:
         url: ``sqlite:///PATH`` (the folder is created) or ``postgresql://…``.
+        station: Which station writes through this store (the server's host
+            and data folder): a lab may keep several rigs' runs in one
+            PostgreSQL database, and a station starting may only call its
+            own runs interrupted, not those another station is running.
 
     Attributes:
-        interrupted_at_open: ``(run id, log CSV path)`` of each run found still
-            running when the store opened (cut short by a crash or kill), now
-            marked ``interrupted``.
+        interrupted_at_open: ``(run id, log CSV path)`` of each run of this
+            station (or of none named) found still running when the store
+            opened (cut short by a crash or kill), now marked ``interrupted``.
     """
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, station: str = "") -> None:
         self._lock = threading.Lock()
+        self.station = station
         self.dialect = "postgresql" if url.startswith(("postgresql://", "postgres://")) else "sqlite"
         if self.dialect == "postgresql":
             try:
@@ -238,7 +245,8 @@ class Store:
         # app.engine.runlog.repair_log)
         self.interrupted_at_open: list[tuple[int, str]] = [
             (int(r["id"]), str(r["log_csv"] or "")) for r in
-            self._exec("UPDATE runs SET status='interrupted' WHERE status='running' RETURNING id, log_csv")]
+            self._exec("UPDATE runs SET status='interrupted' WHERE status='running' AND station IN (?, '') "
+                       "RETURNING id, log_csv", (station,))]
 
     def close(self) -> None:
         """Close the connection."""
@@ -265,10 +273,10 @@ class Store:
         """Record a new run; returns its id."""
         sid = spec.get("session_id")
         return self._insert(
-            "INSERT INTO runs(kind, status, started, spec, log_csv, person, notes, session_id) "
-            "VALUES (?,?,?,?,?,?,?,?)",
+            "INSERT INTO runs(kind, status, started, spec, log_csv, person, notes, session_id, station) "
+            "VALUES (?,?,?,?,?,?,?,?,?)",
             (kind, "running", time.time(), strict_json(spec), log_csv, str(spec.get("person", "")),
-             str(spec.get("notes", "")), int(sid) if sid is not None else None))
+             str(spec.get("notes", "")), int(sid) if sid is not None else None, self.station))
 
     def run_finished(self, run_id: int, status: str, metrics: dict[str, Any] | None,
                      result: dict[str, Any] | None) -> None:

@@ -85,6 +85,21 @@ def test_a_run_left_running_by_a_crash_is_interrupted_on_reopen(url: str) -> Non
     assert Store(url).interrupted_at_open == []  # once
 
 
+def test_a_station_starting_calls_only_its_own_runs_interrupted(url: str) -> None:
+    """One database, two rigs: the second station's start had marked the first one's live run
+    interrupted (until it ended) and handed it to its own log repair."""
+    rig1 = Store(url, station="lab-pc:/data/rig1")
+    live = rig1.run_started("workout", {"scenario": "SC-1"}, "/data/rig1/runs/a.csv")
+    rig2 = Store(url, station="lab-pc:/data/rig2")
+    assert rig2.interrupted_at_open == [] and rig2.run(live)["status"] == "running"  # type: ignore[index]
+    assert rig2.run(live)["station"] == "lab-pc:/data/rig1"  # type: ignore[index]
+    rig1.close()  # rig 1's station dies; its next start calls its run interrupted
+    again = Store(url, station="lab-pc:/data/rig1")
+    assert again.interrupted_at_open == [(live, "/data/rig1/runs/a.csv")]
+    rig2.close()
+    again.close()
+
+
 def _log_cut_short(tmp_path: Path, rows: int) -> Path:
     """A run log whose writer died: ``rows`` whole rows, then half a row, its JSON still "running"."""
     from app.engine.runlog import RunLogWriter

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import socket
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -31,6 +32,11 @@ if TYPE_CHECKING:
     from app.api.liveplots import LivePlots
 
 STATIC = Path(__file__).resolve().parent.parent / "static"
+
+
+def station_name(data_dir: str | Path) -> str:
+    """This station in the store: host and data folder (one station per folder: ``claim_data_dir``)."""
+    return f"{socket.gethostname()}:{Path(data_dir).resolve()}"
 
 
 def repair_interrupted_logs(store: Store, data_dir: str | Path) -> list[int]:
@@ -68,7 +74,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def _station_lifespan(app: FastAPI) -> AsyncIterator[None]:
-        store = Store(settings.db_url)
+        store = Store(settings.db_url, station=station_name(settings.data_dir))
         repair_interrupted_logs(store, settings.data_dir)
         station = Station(data_dir=settings.data_dir, sink=store,
                           rate_hz=hardware.rate_hz if hardware is not None else settings.rate_hz,
