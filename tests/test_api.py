@@ -34,7 +34,9 @@ def test_state_machine_refuses_illegal_actions_with_409_and_why(client: TestClie
     assert set(r.json()["allowed"]) == {"disconnect", "start", "estimate"}
     r = client.post("/api/engine/connect")
     assert r.status_code == 409 and "idle" in r.json()["detail"]
-    assert client.post("/api/engine/clear").status_code == 409
+    r = client.post("/api/engine/clear")
+    assert r.status_code == 409 and r.json()["detail"] == "cannot clear while idle: no fault is latched; there is " \
+        "nothing to clear"
     assert client.post("/api/engine/disconnect").json()["state"] == "disconnected"
 
 

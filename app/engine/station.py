@@ -457,7 +457,9 @@ class Station:
     def _require(self, action: str) -> None:
         st = self.state
         if st not in ALLOWED[action]:
-            raise TransitionError(action, st)
+            # clearing is refused for what is missing (a fault), not for what the state is doing
+            raise TransitionError(action, st, "no fault is latched; there is nothing to clear"
+                                  if action == "clear" else None)
 
     def require(self, action: str, rig: str | None = None) -> None:
         """Raise :class:`TransitionError` unless ``action`` is legal now (on ``rig``, if given).
