@@ -436,6 +436,31 @@ def test_where_the_phase_is_lost_the_cycles_mean_predicts_the_rig_better() -> No
         np.testing.assert_array_equal(mean[k][1][kept], raw[k][1][kept])
 
 
+def test_the_replay_takes_the_atmosphere_each_log_was_taken_in() -> None:
+    """A lab at 1000 m (0.90 bar abs), its logs saying so: the PRVs regulate to z + P_atm and exhaust
+    into it. The replay had used the sea-level 1.013 bar whatever the log said, so such a rig's
+    pressures read 0.1 bar off (a protocol at 0.95 bar doubled the baseline's error, and
+    sensor_bias closed half of it)."""
+    from app.engine.constants import BAR
+
+    quiet = PlantParams()
+    quiet = replace(quiet, p_atm=0.90 * BAR, sensors=replace(quiet.sensors, pressure_noise_bar=0.0,
+                                                             torque_noise_nm=0.0))
+    (log,) = run_protocol(quiet, repetitions=1, scale=0.3, kinds=["prv_steps"])
+    assert log.meta["p_atm_bar"] == pytest.approx(0.90)
+    fam = RotaryFamily()
+    x = {p.name: p.x0 for p in fam.baseline()}
+
+    def rms(e: Experiment) -> float:
+        prep = fam.prepare(e)
+        y, m = fam.predict(prep, x, ()), fam.measured(prep)
+        return float(np.sqrt(np.mean((y["p_a"] - m["p_a"]) ** 2)))
+
+    told = rms(log)
+    untold = rms(replace(log, meta=log.meta | {"p_atm_bar": 1.01325}))
+    assert told < 0.02 and untold > 0.08, (told, untold)  # bar RMS: 0.007 and 0.11 when written
+
+
 def test_replay_sees_an_effect_where_it_acts(nominal_logs: list) -> None:
     # the same replay with a vane leak switched on departs from the leak-free logs in the hold
     fam = RotaryFamily()

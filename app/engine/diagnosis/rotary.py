@@ -61,7 +61,7 @@ from numba import njit
 from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 from scipy.signal import butter, fftconvolve, filtfilt
 
-from app.engine.constants import BAR
+from app.engine.constants import BAR, P_ATM
 from app.engine.diagnosis.core import Param, white_noise_sd
 from app.engine.diagnosis.families import WORKING_PRESSURE_BAR
 from app.engine.diagnosis.logs import Experiment, on_uniform_grid, speed_of, unscored_near_fills
@@ -315,6 +315,8 @@ class RotaryPrep:
     filled: np.ndarray | None = None  # samples a gap in the log made up: pressures unscored there
     # per scored sample, the share of the torque noise's variance a right model's error carries
     torque_noise_shows: np.ndarray | None = None
+    # the atmosphere the log was taken in (its p_atm_bar): the PRVs regulate to z + p_atm and exhaust into it
+    p_atm_bar: float = P_ATM / BAR
     cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
     torque_cache: OrderedDict[tuple[Any, ...], np.ndarray] = field(default_factory=OrderedDict)
 
@@ -651,7 +653,7 @@ class RotaryFamily:
                           ps0, noise, (b, a), {k: v[keep] for k, v in regimes.items()},
                           {k: v[keep] for k, v in inputs.items()}, still, keep, (lost_a, lost_b),
                           exp.filled if exp.filled is not None and exp.filled.any() else None,
-                          _noise_carried(b, a, ~still)[keep])
+                          _noise_carried(b, a, ~still)[keep], float(exp.meta.get("p_atm_bar", P_ATM / BAR)))
 
     def at_stops(self, theta: np.ndarray) -> np.ndarray:
         """Where the vane is at an end stop: the thesis rig's (SPEC: 270° ROM), within :data:`STOP_TOL_RAD`."""
@@ -802,12 +804,17 @@ class RotaryFamily:
 
     # ------------------------------------------------------------------ model
 
-    def kernel_for(self, x: dict[str, float], effects: tuple[str, ...], ps0_bar: float) -> Any:
-        """The pneumatic kernel with baseline scales and the pneumatic effects of ``effects``."""
+    def kernel_for(self, x: dict[str, float], effects: tuple[str, ...], ps0_bar: float,
+                   p_atm_bar: float | None = None) -> Any:
+        """The pneumatic kernel with baseline scales and the pneumatic effects of ``effects``.
+
+        ``p_atm_bar`` is the log's atmosphere [bar abs] (default: the nominal rig's).
+        """
         n = self.nominal
         k = self.kernel
         dv = x.get("dead_volume_scale", 1.0)
         kw: dict[str, Any] = {
+            "p_atm": (p_atm_bar if p_atm_bar is not None else n.p_atm / BAR) * BAR,
             "prv_cs": conductance_si(n.prv.c_supply) * x.get("prv_c_scale", 1.0),
             "prv_ce": conductance_si(n.prv.c_exhaust) * x.get("prv_c_scale", 1.0),
             "dcv_c": conductance_si(n.dcv.c) * x.get("dcv_c_scale", 1.0),
@@ -907,7 +914,7 @@ class RotaryFamily:
 
     def _replay(self, prep: RotaryPrep, x: dict[str, float], effects: tuple[str, ...]) -> np.ndarray:
         peff = tuple(e for e in effects if e in _PNEUMATIC_EFFECTS)
-        k = self.kernel_for(x, peff, prep.ps0_bar)
+        k = self.kernel_for(x, peff, prep.ps0_bar, prep.p_atm_bar)
         x0 = np.zeros(pl.NX)
         x0[pl.I_POS] = prep.theta[0]
         vol = np.empty(pl.NN)
