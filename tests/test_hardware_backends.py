@@ -370,6 +370,37 @@ def test_a_replayed_log_drives_the_station_like_a_rig(tmp_path: Path) -> None:
         st.close()
 
 
+def test_a_station_at_altitude_commands_logs_and_simulates_in_its_own_atmosphere(tmp_path: Path) -> None:
+    """A lab at 1000 m (0.90 bar abs) says so in its configuration. The PRVs regulate to z + P_atm
+    (Eq 3.7): commanded with the sea-level 1.013 bar, its chambers were pressurised to P_w - 0.11
+    bar, and its logs said 1.013 bar, which the gap diagnosis then read as a sensor offset."""
+    import json
+
+    from app.engine.control import pipeline as cpl
+    from app.engine.station import LIVE_COLUMNS, RunSpec, Station
+
+    st = Station(hardware=HardwareConfig(backend="sim", p_atm_bar=0.90), data_dir=tmp_path)
+    try:
+        st.connect()
+        assert st.backend is not None and st.backend.params.p_atm == pytest.approx(0.90e5)  # type: ignore[attr-defined]
+        assert st.safety.p_atm == pytest.approx(0.90e5)
+        time.sleep(1.0)
+        vented = st.live.latest()
+        assert vented is not None and vented[LIVE_COLUMNS.index("p_a")] == pytest.approx(0.90, abs=0.03)
+        st.start(RunSpec("SC-1", "default", 1.2, 3.0, "P-alt"))
+        assert st._job is not None and st._job.controller.cp[cpl.P_PATM] == pytest.approx(0.90)
+        time.sleep(1.3)  # pressurising: both chambers held at P_w = 3 bar abs for 1.5 s
+        row = st.live.latest()
+        assert row is not None and st.state.value == "running", st.fault_message
+        for c in ("p_a", "p_b"):
+            assert row[LIVE_COLUMNS.index(c)] == pytest.approx(3.0, abs=0.05), (c, row)
+        st.stop()
+        (meta_path,) = (tmp_path / "runs").glob("run-*.json")
+        assert json.loads(meta_path.read_text())["p_atm_bar"] == pytest.approx(0.90)
+    finally:
+        st.close()
+
+
 # ------------------------------------------------------------------ by configuration, and calibration
 
 

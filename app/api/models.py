@@ -153,13 +153,14 @@ class CalibrateRequest(Documented):
             (both chambers vented to atmosphere) or ``encoder_zero`` (handle
             held still at neutral).
         seconds: Averaging time [s].
-        p_atm_bar: The local atmosphere [bar abs] (standard atmosphere unless measured).
+        p_atm_bar: The local atmosphere [bar abs] (default: the station's, from its hardware configuration).
     """
 
     model_config = ConfigDict(extra="forbid")
     what: Literal["torque_zero", "pressure_offsets", "encoder_zero"]
     seconds: float = Field(1.0, ge=0.2, le=30.0, description="s")
-    p_atm_bar: float = Field(1.01325, ge=0.7, le=1.1, description="bar abs")
+    p_atm_bar: float | None = Field(None, ge=0.7, le=1.1, description="bar abs; default: the station's "
+                                    "(the hardware configuration's p_atm_bar)")
 
 
 class CalibrationResult(Documented):

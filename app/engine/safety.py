@@ -187,11 +187,14 @@ class SafetySupervisor:
         plant_responds: Whether the measurements answer the commands (False for
             a replayed log: the checks that compare them — PRV following,
             supply — would only see the recording disagree with today's commands).
+        p_atm_bar: The lab's atmosphere [bar abs]: the pressure limits and the
+            supply check are in bar gauge, the sensors read bar abs.
     """
 
     def __init__(self, limits: SafetyLimits | None = None, period: float = 0.005,
-                 safe: Command = VENT_COMMAND, plant_responds: bool = True) -> None:
+                 safe: Command = VENT_COMMAND, plant_responds: bool = True, p_atm_bar: float = P_ATM / BAR) -> None:
         self.plant_responds = plant_responds
+        self.p_atm = p_atm_bar * BAR
         self.limits = limits or SafetyLimits()
         self.period = period
         self.safe = safe
@@ -305,7 +308,7 @@ class SafetySupervisor:
             self.trip("torque_limit", f"interaction torque {m.torque:.2f} N·m exceeds the {lim.torque_max_nm:g} "
                       "N·m limit", m.t, "torque")
             return
-        p_gauge = ((m.p_a * BAR - P_ATM) / BAR, (m.p_b * BAR - P_ATM) / BAR)
+        p_gauge = ((m.p_a * BAR - self.p_atm) / BAR, (m.p_b * BAR - self.p_atm) / BAR)
         for i, side in enumerate("ab"):
             over = p_gauge[i] > lim.p_max_bar + lim.p_margin_bar
             # two periods in a row: one noisy sample is not a pressure
@@ -357,7 +360,7 @@ class SafetySupervisor:
                                   m.t, f"z_{side}")
                         return
                 need = max(pc.z_a, pc.z_b)
-                supply_gauge = (m.p_s * BAR - P_ATM) / BAR
+                supply_gauge = (m.p_s * BAR - self.p_atm) / BAR
                 if lim.supply_s is not None and need > 0.2 and supply_gauge < need + lim.supply_margin_bar:
                     self._supply_low += dt
                     if self._supply_low >= (lim.supply_s or 0.0):

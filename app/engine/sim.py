@@ -298,7 +298,7 @@ def run_workout(
         from app.engine.human import isotonic
 
         program = isotonic(+1, repetitions=8)
-    control = control or ControllerConfig(controller="default", pw_bar=pw_bar)
+    control = control or ControllerConfig(controller="default", pw_bar=pw_bar, p_atm_bar=params.p_atm / BAR)
     pw_bar = control.pw_bar
     cp, fr_est, fz = control.pack()
     x = pl.initial_state(params, 0.0, pw_bar, pw_bar)

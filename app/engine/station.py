@@ -27,7 +27,8 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, Literal, Protocol, get_args
 
@@ -334,7 +335,7 @@ class RunJob:
             return SAFE_COMMAND
         if self.t_prog is None:
             if meas.t - self.t0 < self.pressurise_s:
-                z = self.spec.pw_bar - P_ATM / BAR  # PRV static map P = z + P_atm (SPEC §3)
+                z = self.spec.pw_bar - self.controller.config.p_atm_bar  # PRV static map P = z + P_atm (SPEC §3)
                 return Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
             self.t_prog = meas.t
             self.on_program_start(meas.t)
@@ -372,6 +373,12 @@ class Station:
         hardware: The hardware configuration (backend, channels, scaling);
             its backend replaces ``backend_factory`` unless it is ``sim``.
         hardware_path: Where ``hardware`` came from; calibrations are saved there.
+
+    Attributes:
+        p_atm_bar: The lab's atmosphere [bar abs] (``hardware.p_atm_bar``; sea
+            level without a configuration): the PRVs regulate above it (Eq 3.7),
+            the controllers and procedures command with it, the simulated rig
+            lives in it, and every log records it.
     """
 
     def __init__(
@@ -388,6 +395,7 @@ class Station:
     ) -> None:
         self.hardware = hardware
         self.hardware_path = Path(hardware_path) if hardware_path is not None else None
+        self.p_atm_bar = hardware.p_atm_bar if hardware is not None else P_ATM / BAR
         if hardware is not None:
             backend_factory = backend_factory or make_factory(hardware)
             limits = {**hardware.limits, **(limits or {})}
@@ -395,8 +403,9 @@ class Station:
         self.limit_overrides = dict(limits or {})
         SafetyLimits.for_rig("rotary", **self.limit_overrides)  # refuse bad limits at construction
         self.stall_s = stall_s
-        self.safety = SafetySupervisor(SafetyLimits.for_rig("rotary", **self.limit_overrides), 1.0 / rate_hz)
-        self.backend_factory = backend_factory or _sim_backend
+        self.safety = SafetySupervisor(SafetyLimits.for_rig("rotary", **self.limit_overrides), 1.0 / rate_hz,
+                                       p_atm_bar=self.p_atm_bar)
+        self.backend_factory = backend_factory or partial(_sim_backend, p_atm_bar=self.p_atm_bar)
         self.data_dir = Path(data_dir)
         self.sink = sink
         self.rate_hz = rate_hz
@@ -492,7 +501,8 @@ class Station:
             self.rig = rig
             self.supervisor = Supervisor(backend.safe_command())
             self.safety = SafetySupervisor(SafetyLimits.for_rig(rig.kind, **self.limit_overrides),
-                                           1.0 / self.rate_hz, plant_responds=backend.responds_to_commands)
+                                           1.0 / self.rate_hz, plant_responds=backend.responds_to_commands,
+                                           p_atm_bar=self.p_atm_bar)
             # The first read/step compiles the numba kernels (seconds on a fresh
             # install); doing it here keeps that stall out of the loop's jitter.
             backend.activate()  # a real backend cannot be read before its link is open
@@ -531,7 +541,7 @@ class Station:
             settings = spec.settings
             case = spec.case
             prog, t_end, t_d = case_program(case, settings)
-            ctl = InteractionController(spec.controller_config())
+            ctl = InteractionController(replace(spec.controller_config(), p_atm_bar=self.p_atm_bar))
             backend = self.backend
             set_program = getattr(backend, "set_program", None)
             set_dist = getattr(backend, "set_disturbance", None)
@@ -561,7 +571,7 @@ class Station:
 
             job = RunJob(spec, ctl, t_end, t_d, program_start, disturb, pressurise_s=pressurise_s)
             name = time.strftime("run-%Y%m%d-%H%M%S") + f"-{int(time.time() * 1e3) % 1000:03d}"
-            meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": P_ATM / BAR,
+            meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": self.p_atm_bar,
                     "working_pressure_bar": spec.pw_bar, "experiment": "workout", "human": True,
                     "backend": backend.name, **asdict(spec)}
             self._log = RunLogWriter(self.data_dir / "runs", name, meta, threaded=True)
@@ -627,7 +637,7 @@ class Station:
             pw = max(spec["ps_bar"])  # the valve map's highest supply
         meta: dict[str, Any] = {
             "rig": "rotary" if rig == "rotary" else "linear", "setup": rig, "sample_rate_hz": rate_hz,
-            "p_atm_bar": P_ATM / BAR, "working_pressure_bar": float(pw if pw is not None else DEFAULT_PW_BAR),
+            "p_atm_bar": self.p_atm_bar, "working_pressure_bar": float(pw if pw is not None else DEFAULT_PW_BAR),
             "experiment": kind, "human": False, "backend": self.backend.name if self.backend else "",
             **({"working_pressure_note": "the thesis's default: the procedure sets its own pressures"}
                if pw is None else {}),
@@ -670,7 +680,7 @@ class Station:
                     sink.run_finished(rid, "complete", None, {"log": csv.stem})
                 logs.append({"name": csv.stem, "run_id": rid})
 
-            proc = ProtocolProcedure(outdir, repetitions, scale, kinds, rate_hz=self.rate_hz,
+            proc = ProtocolProcedure(outdir, repetitions, scale, kinds, rate_hz=self.rate_hz, p_atm_bar=self.p_atm_bar,
                                      backend=self.backend.name, set_program=getattr(self.backend, "set_program", None),
                                      on_log=store_log, meta=who)
             spec = {"repetitions": repetitions, "scale": scale, "kinds": proc.kinds, **who, "notes": notes}
@@ -720,7 +730,7 @@ class Station:
                 self.fault_message = fault.message  # the first fault latched, maybe an earlier one
                 self._state = State.FAULT
 
-    def calibrate(self, what: str, seconds: float = 1.0, p_atm_bar: float = P_ATM / BAR) -> dict[str, Any]:
+    def calibrate(self, what: str, seconds: float = 1.0, p_atm_bar: float | None = None) -> dict[str, Any]:
         """Zero a sensor from ``seconds`` of idle samples and save the configuration with today's date.
 
         The station must be idle (chambers venting, nobody holding the handle
@@ -731,7 +741,8 @@ class Station:
                 atmosphere) or ``encoder_zero``.
             seconds: Averaging time [s].
             p_atm_bar: The atmosphere the vented chambers read [bar abs]
-                (standard atmosphere unless a barometer says otherwise).
+                (default: the station's, :attr:`p_atm_bar`; a barometer's
+                reading of the day is closer).
 
         Returns:
             What changed: ``{"what", "date", "samples", "before", "after"}``.
@@ -743,6 +754,7 @@ class Station:
         if what not in ("torque_zero", "pressure_offsets", "encoder_zero"):
             raise ParameterError(f"what = {what!r} must be torque_zero, pressure_offsets or encoder_zero")
         check_range("seconds", seconds, 0.2, 30.0, unit="s")
+        p_atm_bar = self.p_atm_bar if p_atm_bar is None else p_atm_bar
         check_range("p_atm_bar", p_atm_bar, 0.7, 1.1, unit="bar abs")
         with self._lock:
             self._require("calibrate")
@@ -1020,7 +1032,7 @@ class Station:
         self._state = State.IDLE
 
 
-def _sim_backend(clock: WallClock, period: float, rig: Rig) -> HardwareInterface:
+def _sim_backend(clock: WallClock, period: float, rig: Rig, p_atm_bar: float = P_ATM / BAR) -> HardwareInterface:
     from app.engine.hardware.sim import SimulatedRig
     from app.engine.human import HumanProgram
 
@@ -1030,6 +1042,7 @@ def _sim_backend(clock: WallClock, period: float, rig: Rig) -> HardwareInterface
         params = PlantParams.linear_rig(rig.cylinder)  # type: ignore[arg-type]
     else:  # Figure 3.10: PS-0 moved to the DCV's supply port
         params = PlantParams.linear_rig(rig.cylinder, sensors=SensorParams(supply_tap="prv_a"))  # type: ignore[arg-type]
+    params = replace(params, p_atm=p_atm_bar * BAR)
     sim = SimulatedRig(clock, params, period=period)
     sim.set_program(HumanProgram.rest() if rig.kind == "rotary" else HumanProgram.absent())
     return sim

@@ -116,7 +116,8 @@ def estimate(req: RotaryIdentRequest, station: StationDep) -> Started:
     from app.engine.ident.rotary import RotaryFrictionEstimator, RotaryFrictionProcedure
 
     inputs = RotaryInputs(req.rom_deg, req.vane_area_mm2, req.radius_mm, req.ns, req.nd, req.pw_bar)
-    return _identify(station, RotaryFrictionProcedure(inputs, seed=req.seed), RotaryFrictionEstimator,
+    return _identify(station, RotaryFrictionProcedure(inputs, seed=req.seed, p_atm_bar=station.p_atm_bar),
+                     RotaryFrictionEstimator,
                      "rotary", req.model_dump())
 
 
@@ -127,7 +128,8 @@ def estimate_linear(req: LinearIdentRequest, station: StationDep) -> Started:
     from app.engine.ident.linear import LinearFrictionEstimator, LinearFrictionProcedure
 
     inputs = LinearInputs(req.stroke_mm, req.piston_diameter_mm, req.rod_diameter_mm, req.ns, req.nd)
-    return _identify(station, LinearFrictionProcedure(inputs, seed=req.seed), LinearFrictionEstimator,
+    return _identify(station, LinearFrictionProcedure(inputs, seed=req.seed, p_atm_bar=station.p_atm_bar),
+                     LinearFrictionEstimator,
                      "linear", req.model_dump())
 
 
@@ -180,7 +182,7 @@ def tune_pid(req: PIDTuneRequest, station: StationDep) -> Started:
 
     station.require("estimate", "rotary")
     spec = pt.AutotuneSpec(req.side, req.bandwidth_rad_s, req.phase_margin_deg, req.pw_bar, req.amplitude_bar,
-                           req.periods, req.n_filter, req.initial)
+                           req.periods, req.n_filter, req.initial, station.p_atm_bar)
 
     def fit(p: pt.PIDAutotuneProcedure) -> dict[str, Any]:
         frf = p.frf()

@@ -9,7 +9,7 @@ from typing import Literal
 
 import numpy as np
 
-from app.engine.constants import BAR
+from app.engine.constants import BAR, P_ATM
 from app.engine.control import pipeline as cpl
 from app.engine.control.fuzzy import FuzzyConfig
 from app.engine.params import ParameterError, RotaryFriction, VaneCylinder, check_range, check_working_pressure
@@ -56,6 +56,8 @@ class ControllerConfig:
             [-, 1/s, s]; ``None`` keeps Eq 3.26's. Table 4.3's trial-and-error
             set is :data:`TABLE_4_3_GAINS`; an autotuned set comes from
             :mod:`app.engine.ident.pid_tune`.
+        p_atm_bar: The atmosphere [bar abs] the PRVs regulate above (P = z +
+            P_atm, Eq 3.7): the lab's, from the hardware configuration.
     """
 
     controller: ControllerName = "fuzzy"
@@ -68,9 +70,11 @@ class ControllerConfig:
     friction: RotaryFriction = field(default_factory=RotaryFriction)
     vane: VaneCylinder = field(default_factory=VaneCylinder)
     pid_gains: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    p_atm_bar: float = P_ATM / BAR
 
     def __post_init__(self) -> None:
         check_working_pressure(self.pw_bar)
+        check_range("p_atm_bar", self.p_atm_bar, 0.7, 1.1, unit="bar abs")
         if self.pid_gains is not None:
             if len(self.pid_gains) != 2 or any(len(g) != 3 for g in self.pid_gains):
                 raise ParameterError("pid_gains must be ((K_p, K_i, K_d) of PRV-a, (K_p, K_i, K_d) of PRV-b)")
@@ -90,6 +94,7 @@ class ControllerConfig:
         cp = cpl.default_params(self.pw_bar, self.target_nm, self.h, self.vane.torque_per_pa * BAR,
                                 self.pdra, self.tdra)
         cp[cpl.P_FR_J] = self.friction.shape_j
+        cp[cpl.P_PATM] = self.p_atm_bar
         cp[cpl.P_TDRA_REF] = 1.0 if self.tdra_into_reference else 0.0
         if self.pid_gains is not None:
             for side, (kp, ki, kd) in enumerate(self.pid_gains):

@@ -237,7 +237,8 @@ class ProtocolProcedure(Procedure):
                 self.set_program(HumanProgram(prog.t + t0, prog.pos + rest_at))
             try:
                 if s is None:  # the isotonic workout: the Default controller while the user pushes
-                    ctl = InteractionController(ControllerConfig(controller="default", pw_bar=pw))
+                    ctl = InteractionController(ControllerConfig(controller="default", pw_bar=pw,
+                                                                 p_atm_bar=self.p_atm_bar))
                     while self.meas.t - t0 < ISOTONIC_S * self.scale - 0.5 * self.dt:
                         yield ctl.step(self.meas, self.dt)
                 else:

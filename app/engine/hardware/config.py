@@ -300,6 +300,10 @@ class HardwareConfig(_Strict):
         outputs: Valve output map and ranges.
         safe_outputs: What the DAQ watchdog holds if the process dies.
         speed_filter_hz: Speed estimator low-pass cut-off [Hz].
+        p_atm_bar: The lab's atmosphere [bar abs] (1.013 at sea level, ≈ 0.95
+            at 500 m, 0.90 at 1000 m): the PRVs regulate above it (Eq 3.7), so
+            the controllers command with it, the logs record it and the gap
+            diagnosis replays in it; with ``sim``, the simulated rig's too.
         limits: Safety-limit overrides (``SafetyLimits`` field → value).
         modbus: The Modbus link (backend ``modbus``).
         quanser: The HIL board (backend ``quanser``).
@@ -314,6 +318,7 @@ class HardwareConfig(_Strict):
     outputs: Outputs = Outputs()
     safe_outputs: SafeOutputs = SafeOutputs()
     speed_filter_hz: Annotated[float, Field(gt=0.0, le=500.0)] = 25.0
+    p_atm_bar: Annotated[float, Field(ge=0.7, le=1.1)] = 1.01325
     limits: dict[str, float] = {}
     modbus: ModbusLink | None = None
     quanser: QuanserCard | None = None

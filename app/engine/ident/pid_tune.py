@@ -62,6 +62,7 @@ class AutotuneSpec:
             period of settling).
         n_filter: Derivative filter coefficient N [1/s] (thesis: 100).
         initial: Gains the loop runs with during the experiment.
+        p_atm_bar: The lab's atmosphere [bar abs] (PRV command offset, Eq 3.7).
     """
 
     side: str = "a"
@@ -72,6 +73,7 @@ class AutotuneSpec:
     periods: int = 2
     n_filter: float = 100.0
     initial: tuple[float, float, float] = INITIAL_GAINS
+    p_atm_bar: float = 1.01325
 
     def __post_init__(self) -> None:
         if self.side not in ("a", "b"):
@@ -276,7 +278,8 @@ class PIDAutotuneProcedure(Procedure):
         self.spec = spec
         self.progress.total_tests = 1
         self.side = 0 if spec.side == "a" else 1
-        cfg = ControllerConfig(controller="pid", pw_bar=spec.pw_bar, pid_gains=(spec.initial, spec.initial))
+        cfg = ControllerConfig(controller="pid", pw_bar=spec.pw_bar, pid_gains=(spec.initial, spec.initial),
+                               p_atm_bar=spec.p_atm_bar)
         self.controller = PRVController(spec.side, "pid", cfg)
         self.controller.cp[cpl.P_N] = spec.n_filter
         self.p_atm = float(self.controller.cp[cpl.P_PATM])
