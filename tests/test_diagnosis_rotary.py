@@ -461,6 +461,29 @@ def test_the_replay_takes_the_atmosphere_each_log_was_taken_in() -> None:
     assert told < 0.02 and untold > 0.08, (told, untold)  # bar RMS: 0.007 and 0.11 when written
 
 
+def test_a_wrong_atmosphere_in_the_logs_is_read_off_the_vented_chambers() -> None:
+    """A wrong p_atm_bar reads as an offset of both chamber sensors, which sensor_bias would take; where
+    a DCV has vented its chamber, the chamber stands at the atmosphere, so the report says which."""
+    from app.engine.diagnosis.run import ATMOSPHERE_TOL_BAR, VENT_MIN_SAMPLES, vented_atmosphere
+
+    logs = run_protocol(PlantParams(), seed=5, repetitions=1, scale=0.5, kinds=["fill_shut", "prv_steps"])
+    right = vented_atmosphere(logs)
+    for c in ("p_a", "p_b"):  # the venting's own: 0.001–0.003 bar above the atmosphere
+        assert right[c]["samples"] >= VENT_MIN_SAMPLES and abs(right[c]["offset_bar"]) < 0.5 * ATMOSPHERE_TOL_BAR
+    assert right["note"] == "" and right["p_atm_bar"] == pytest.approx(1.01325)
+    # the logs written at sea level, the rig at 1000 m: both chambers read 0.11 bar under it
+    high = vented_atmosphere([replace(e, meta=e.meta | {"p_atm_bar": 1.125}) for e in logs])
+    assert high["p_a"]["offset_bar"] == pytest.approx(-0.11, abs=0.01), high
+    assert high["note"].startswith("where a DCV vented its chamber, p_a and p_b read -0.11")
+    assert "the atmosphere written in the logs looks wrong" in high["note"]
+    # one sensor's zero off: only that chamber is named
+    off_b = vented_atmosphere([replace(e, channels=e.channels | {"p_b": e.channels["p_b"] + 0.05}) for e in logs])
+    assert off_b["note"].startswith("where its DCV vented it, p_b reads +0.05") and "p_a " not in off_b["note"]
+    # logs that never vent a chamber say nothing either way
+    none = vented_atmosphere([e for e in logs if e.name.startswith("prv_steps")])
+    assert none["p_a"]["samples"] == 0 and math.isnan(none["p_a"]["offset_bar"]) and none["note"] == ""
+
+
 def test_replay_sees_an_effect_where_it_acts(nominal_logs: list) -> None:
     # the same replay with a vane leak switched on departs from the leak-free logs in the hold
     fam = RotaryFamily()

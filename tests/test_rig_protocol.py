@@ -57,6 +57,9 @@ def test_the_protocol_through_the_engine_writes_station_logs_that_find_a_withhel
         assert abs(np.mean(e.channels["torque"][rest])) < 0.1, p.stem
     r = diagnose_dir(tmp_path)
     assert r["verdict"]["effects"] == ["external_leakage"]
+    atm = r["experiments"]["atmosphere"]  # the station's logs say the atmosphere its vented chambers read
+    assert atm["note"] == "" and all(atm[c]["samples"] > 50 and abs(atm[c]["offset_bar"]) < 0.01
+                                     for c in ("p_a", "p_b")), atm
     assert r["experiments"]["held_out"] == ["fill_shut-2", "hold_closed-2"]
     # the handle gives way as the pressures part, but no log here moves it at speed: inertia is named
     # as not ruled out, not as absent

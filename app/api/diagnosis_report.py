@@ -53,6 +53,10 @@ class Experiments(_Open):
         angle_sign: Whether the angle and speed were taken with their signs reversed (``reversed``), the net
             share of the power the torques on the vane lose to its motion (``dissipation``, −1 … 1; friction
             makes it near 1) and over how many samples in motion (``samples``).
+        atmosphere: What the chamber sensors read where a DCV vented their chamber, against the logs'
+            ``p_atm_bar``: per chamber (``p_a``, ``p_b``) the median offset [bar] and the samples (under 50
+            say nothing), the logs' ``p_atm_bar`` and ``note``, the verdict's sentence when a chamber reads
+            more than 0.02 bar off ("" otherwise).
     """
 
     calibration: list[str]
@@ -68,6 +72,7 @@ class Experiments(_Open):
     dcv_wiring: dict[str, Any] | None = None
     pressure_order: dict[str, Any] | None = None
     angle_sign: dict[str, Any] | None = None
+    atmosphere: dict[str, Any] | None = None
 
 
 class Gap(_Open):

@@ -127,9 +127,11 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     unmeasured = {c: flats[0][c] for c in family.optional_channels if all(c in f for f in flats)}
     if unmeasured:
         family.channels = tuple(c for c in family.channels if c not in unmeasured)
+    atmosphere = vented_atmosphere(exps)  # read in the format's wiring, which read_conventions restored
     calib, held, why = _split_station(exps, held_out)
     report = diagnose(family, calib, held, protocol=PROTOCOL, stop=stop)
     report["experiments"]["unmeasured_channels"] = unmeasured
+    report["experiments"]["atmosphere"] = atmosphere
     report["experiments"] |= conv.report()
     report["baseline"]["bounds"] = {p.name: [p.lo, p.hi] for p in family.baseline()}
     report["experiments"]["split"] = why
@@ -156,6 +158,8 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
         report["verdict"]["summary"] += (f"; {', '.join(unmeasured)} read one value in every log, taken as not "
                                          "measured and left out")
     report["verdict"]["summary"] += conv.summary()
+    if atmosphere["note"]:
+        report["verdict"]["summary"] += f"; {atmosphere['note']}"
     if report["verdict"]["untested"]:
         report["verdict"]["summary"] += (f"; not shown by the held-out logs, so not ruled out: "
                                          f"{', '.join(report['verdict']['untested'])}")
@@ -205,6 +209,15 @@ DCV's command is taken mirrored about 5 V (:meth:`~app.engine.diagnosis.rotary.R
 right: all of them, on every rig and protocol tried)."""
 CONVENTION_MIN_SAMPLES = 100
 """Fewer samples than this decide nothing about a valve's wiring, the pressures' order or the angle's sign."""
+
+VENT_HELD_S = 0.3
+"""A chamber its DCV has held fully open to exhaust this long [s] stands at the atmosphere (0.001–0.003 bar
+above it, the 5th–95th percentiles within −0.003 … +0.007, on the protocol's fill_shut logs)."""
+VENT_MIN_SAMPLES = 50
+"""Fewer vented samples of a chamber than this say nothing about its reading of the atmosphere."""
+ATMOSPHERE_TOL_BAR = 0.02
+"""A vented chamber reading further than this from the logs' ``p_atm_bar`` [bar] is said (3 × the venting's
+own spread): the atmosphere written in the logs, or that sensor's zero, is off."""
 
 MOVING_RAD_S = rotary.MOVING_RAD_S
 """Speed above which a sample counts as motion for :func:`excites` [rad/s]."""
@@ -265,6 +278,54 @@ class Conventions(NamedTuple):
                        "columns look like, which no settled fill at two pressures in these logs can tell"
                        if self.torque_reversed and not order_known else "") + ")")
         return out
+
+
+def vented_atmosphere(exps: list[Experiment]) -> dict[str, Any]:
+    """What the chamber sensors read where a DCV has vented their chamber, against the logs' ``p_atm_bar``.
+
+    The replay regulates and exhausts in each log's ``p_atm_bar`` (Eq 3.7); a
+    wrong one reads as an offset of both chamber sensors, which
+    ``sensor_bias`` would take. Where a DCV has held its chamber fully open
+    to exhaust (:data:`DCV_OPEN_V` from 5 V, in the format's wiring) for
+    :data:`VENT_HELD_S`, the chamber stands at the atmosphere.
+
+    Returns:
+        ``{"p_a": {"offset_bar", "samples"}, "p_b": {…}, "p_atm_bar", "note"}``:
+        per chamber the median of (pressure − the log's ``p_atm_bar``) [bar]
+        over its vented samples in every log (NaN without any), the logs'
+        median ``p_atm_bar`` and a sentence for the verdict ("" when both
+        chambers read the atmosphere within :data:`ATMOSPHERE_TOL_BAR`, or
+        too few samples say).
+    """
+    out: dict[str, Any] = {}
+    for ch, u in (("p_a", "u_a"), ("p_b", "u_b")):
+        parts = []
+        for e in exps:
+            if u not in e.inputs or ch not in e.channels:
+                continue
+            cmd = e.inputs[u]
+            vents = (cmd - 5.0 if ch == "p_a" else 5.0 - cmd) >= DCV_OPEN_V
+            n = max(1, int(round(VENT_HELD_S / e.dt)))
+            # held: the last n samples all vent (a run of vents at least n long up to here)
+            runs = np.convolve(vents.astype(np.int32), np.ones(n, dtype=np.int32))[: len(vents)]
+            held = vents & (runs >= n)
+            parts.append(e.channels[ch][held] - float(e.meta["p_atm_bar"]))
+        d = np.concatenate(parts) if parts else np.zeros(0)
+        out[ch] = {"offset_bar": float(np.median(d)) if d.size else float("nan"), "samples": int(d.size)}
+    atm = float(np.median([float(e.meta["p_atm_bar"]) for e in exps]))
+    out["p_atm_bar"] = atm
+    off = {c: out[c]["offset_bar"] for c in ("p_a", "p_b")
+           if out[c]["samples"] >= VENT_MIN_SAMPLES and abs(out[c]["offset_bar"]) > ATMOSPHERE_TOL_BAR}
+    note = ""
+    if len(off) == 2 and abs(off["p_a"] - off["p_b"]) <= ATMOSPHERE_TOL_BAR:
+        note = (f"where a DCV vented its chamber, p_a and p_b read {off['p_a']:+.3f} / {off['p_b']:+.3f} bar from "
+                f"the logs' p_atm_bar ({atm:.3f}): the atmosphere written in the logs looks wrong (or both sensors' "
+                "zero is off), and sensor_bias takes such an offset either way")
+    elif off:
+        note = "; ".join(f"where its DCV vented it, {c} reads {v:+.3f} bar from the logs' p_atm_bar ({atm:.3f}): "
+                         f"that sensor's zero looks off" for c, v in off.items())
+    out["note"] = note
+    return out
 
 
 def read_conventions(family: RotaryFamily, exps: list[Experiment]) -> Conventions:
