@@ -384,6 +384,7 @@ def test_a_station_at_altitude_commands_logs_and_simulates_in_its_own_atmosphere
         st.connect()
         assert st.backend is not None and st.backend.params.p_atm == pytest.approx(0.90e5)  # type: ignore[attr-defined]
         assert st.safety.p_atm == pytest.approx(0.90e5)
+        assert st.status()["p_atm_bar"] == pytest.approx(0.90)  # what GET /api/engine tells a script
         time.sleep(1.0)
         vented = st.live.latest()
         assert vented is not None and vented[LIVE_COLUMNS.index("p_a")] == pytest.approx(0.90, abs=0.03)

@@ -131,6 +131,8 @@ class EngineStatus(Documented):
         calibration: Dates of the last torque-zero, pressure-offset and
             encoder-zero calibrations (null for backends without sensor
             scaling, e.g. the simulator).
+        p_atm_bar: The atmosphere the station commands and logs in [bar abs]
+            (the hardware configuration's ``p_atm_bar``; sea level without one).
     """
 
     state: str
@@ -143,6 +145,7 @@ class EngineStatus(Documented):
     last_run: dict[str, Any] | None = None
     safety: dict[str, Any] | None = None
     calibration: dict[str, str | None] | None = None
+    p_atm_bar: float = 1.01325
 
 
 class CalibrateRequest(Documented):

@@ -836,7 +836,7 @@ class Station:
                                                else None),
                                "rig": asdict(self.rig) if self.backend else None,
                                "fault": self.fault_message, "progress": None, "last_run": self.last_run,
-                               "safety": self.safety.status()}
+                               "safety": self.safety.status(), "p_atm_bar": self.p_atm_bar}
         if self._job is not None:
             out["progress"] = {"kind": "workout", "fraction": self._job.fraction,
                                "phase": "pressurising" if self._job.t_prog is None else "exercising"}
