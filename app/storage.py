@@ -186,10 +186,13 @@ class Store:
 
     Args:
         url: ``sqlite:///PATH`` (the folder is created) or ``postgresql://…``.
-        station: Which station writes through this store (the server's host
-            and data folder): a lab may keep several rigs' runs in one
-            PostgreSQL database, and a station starting may only call its
-            own runs interrupted, not those another station is running.
+        station: Which station writes through this store: its lasting id,
+            then (after a space) whatever helps a reader, e.g. the host and
+            data folder. A lab may keep several rigs' runs in one PostgreSQL
+            database, and a station starting may only call its own runs
+            interrupted, not those another station is running; its own are
+            those whose station starts with the same id (the host name of a
+            container recreated on the same volume changes, the id does not).
 
     Attributes:
         interrupted_at_open: ``(run id, log CSV path)`` of each run of this
@@ -243,10 +246,12 @@ class Store:
         # a run still "running" at start-up was cut short by a crash or kill;
         # its log holds everything up to the last flush (the station repairs the logs of these:
         # app.engine.runlog.repair_log)
+        key = station.split(" ", 1)[0]
         self.interrupted_at_open: list[tuple[int, str]] = [
             (int(r["id"]), str(r["log_csv"] or "")) for r in
-            self._exec("UPDATE runs SET status='interrupted' WHERE status='running' AND station IN (?, '') "
-                       "RETURNING id, log_csv", (station,))]
+            self._exec("UPDATE runs SET status='interrupted' WHERE status='running' "
+                       "AND (station = '' OR station = ? OR station LIKE ?) RETURNING id, log_csv",
+                       (key, f"{key} %"))]
 
     def close(self) -> None:
         """Close the connection."""

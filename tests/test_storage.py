@@ -88,14 +88,18 @@ def test_a_run_left_running_by_a_crash_is_interrupted_on_reopen(url: str) -> Non
 def test_a_station_starting_calls_only_its_own_runs_interrupted(url: str) -> None:
     """One database, two rigs: the second station's start had marked the first one's live run
     interrupted (until it ended) and handed it to its own log repair."""
-    rig1 = Store(url, station="lab-pc:/data/rig1")
+    rig1 = Store(url, station="1f0c lab-pc:/data/rig1")
     live = rig1.run_started("workout", {"scenario": "SC-1"}, "/data/rig1/runs/a.csv")
-    rig2 = Store(url, station="lab-pc:/data/rig2")
-    assert rig2.interrupted_at_open == [] and rig2.run(live)["status"] == "running"  # type: ignore[index]
-    assert rig2.run(live)["station"] == "lab-pc:/data/rig1"  # type: ignore[index]
-    rig1.close()  # rig 1's station dies; its next start calls its run interrupted
-    again = Store(url, station="lab-pc:/data/rig1")
+    rig2 = Store(url, station="77ab lab-pc:/data/rig2")
+    near = Store(url, station="1f0cd lab-pc:/data/rig1b")  # an id that begins like rig 1's is another station
+    assert rig2.interrupted_at_open == near.interrupted_at_open == []
+    assert rig2.run(live)["status"] == "running"  # type: ignore[index]
+    assert rig2.run(live)["station"] == "1f0c lab-pc:/data/rig1"  # type: ignore[index]
+    rig1.close()  # rig 1's station dies; its next start, in a container recreated on the same volume
+    # (another host name, the same id), calls its run interrupted
+    again = Store(url, station="1f0c 3b9e4a7c0d12:/data")
     assert again.interrupted_at_open == [(live, "/data/rig1/runs/a.csv")]
+    near.close()
     rig2.close()
     again.close()
 
@@ -268,3 +272,20 @@ def test_strict_json_writes_what_a_fit_could_not_give_as_null() -> None:
     assert strict_json({"x": Decimal("NaN"), "y": Decimal("0.5")}, default=float) == '{"x": null, "y": 0.5}'
     with pytest.raises(TypeError):
         strict_json({"x": Decimal("0.5")})
+
+
+def test_a_station_keeps_its_id_in_its_folder_whatever_its_host_is_called(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A container recreated on the same volume gets a new host name; it is the same station and must
+    call its own killed runs interrupted (its runs had been matched on host and folder)."""
+    import socket
+
+    from app.api.main import station_name
+
+    first = station_name(tmp_path)
+    sid = (tmp_path / ".station-id").read_text().strip()
+    assert first.split(" ")[0] == sid and len(sid) == 32 and f"{socket.gethostname()}:{tmp_path.resolve()}" in first
+    monkeypatch.setattr(socket, "gethostname", lambda: "3b9e4a7c0d12")
+    again = station_name(tmp_path)
+    assert again.split(" ")[0] == sid and "3b9e4a7c0d12" in again
+    assert station_name(tmp_path / "other").split(" ")[0] != sid  # another folder, another station

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import re
 import socket
+import uuid
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -35,8 +37,25 @@ STATIC = Path(__file__).resolve().parent.parent / "static"
 
 
 def station_name(data_dir: str | Path) -> str:
-    """This station in the store: host and data folder (one station per folder: ``claim_data_dir``)."""
-    return f"{socket.gethostname()}:{Path(data_dir).resolve()}"
+    """This station in the store: its folder's lasting id, with the host and folder for a reader.
+
+    The id is made once and kept in ``DATA_DIR/.station-id``: a container
+    recreated on the same volume gets a new host name but is the same
+    station, and must call its own killed runs interrupted.
+    """
+    folder = Path(data_dir).resolve()
+    path = folder / ".station-id"
+    try:
+        sid = path.read_text(encoding="utf-8").strip()
+    except FileNotFoundError:
+        sid = ""
+    if not sid:
+        sid = uuid.uuid4().hex
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".station-id.tmp-{os.getpid()}")
+        tmp.write_text(sid + "\n", encoding="utf-8")
+        os.replace(tmp, path)  # the folder is claimed (claim_data_dir): no other station writes it
+    return f"{sid} {socket.gethostname()}:{folder}"
 
 
 def repair_interrupted_logs(store: Store, data_dir: str | Path) -> list[int]:
