@@ -289,3 +289,21 @@ def test_a_station_keeps_its_id_in_its_folder_whatever_its_host_is_called(
     again = station_name(tmp_path)
     assert again.split(" ")[0] == sid and "3b9e4a7c0d12" in again
     assert station_name(tmp_path / "other").split(" ")[0] != sid  # another folder, another station
+
+
+def test_a_long_log_is_repaired_from_its_tail_and_its_rows_counted_whole(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The repair reads only the end of a log (an unsynced second at most); a log longer than that
+    window keeps every row before it, and the rows are still counted from the start."""
+    import json
+
+    from app.engine import runlog
+    from app.engine.diagnosis.logs import read_log
+
+    monkeypatch.setattr(runlog, "REPAIR_TAIL_BYTES", 700)  # a few rows: the window starts mid-row
+    csv = _log_cut_short(tmp_path, 400)
+    assert csv.stat().st_size > 10 * 700
+    with open(csv, "ab") as fh:
+        fh.write(b"\0" * 300)  # lost pages after the cut row
+    assert runlog.repair_log(csv) == 400
+    assert len(read_log(csv).t) == 400 and json.loads(csv.with_suffix(".json").read_text())["rows"] == 400

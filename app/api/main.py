@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import socket
@@ -34,6 +35,7 @@ if TYPE_CHECKING:
     from app.api.liveplots import LivePlots
 
 STATIC = Path(__file__).resolve().parent.parent / "static"
+log = logging.getLogger(__name__)
 
 
 def station_name(data_dir: str | Path) -> str:
@@ -70,8 +72,13 @@ def repair_interrupted_logs(store: Store, data_dir: str | Path) -> list[int]:
     repaired = []
     for run_id, csv in store.interrupted_at_open:
         path = Path(csv).resolve() if csv else None
-        if path is not None and path.is_relative_to(folder) and repair_log(path) is not None:
-            repaired.append(run_id)
+        if path is None or not path.is_relative_to(folder):
+            continue
+        try:
+            if repair_log(path) is not None:
+                repaired.append(run_id)
+        except OSError as exc:  # one unreadable log keeps the station from starting no more than before
+            log.warning("run %d: its log %s could not be repaired (%s)", run_id, path, exc)
     return repaired
 
 

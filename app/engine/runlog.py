@@ -187,6 +187,11 @@ class RunLogWriter:
         self.close("complete" if exc_type is None else "interrupted")
 
 
+REPAIR_TAIL_BYTES = 4 << 20
+"""How much of a log's end :func:`repair_log` searches for a cut row or lost pages [bytes] (a 1 kHz log
+writes 80 kB a second; an operating system loses at most the last half second of them)."""
+
+
 def repair_log(csv_path: Path | str) -> int | None:
     """Cut a log whose writer died back to its last whole row; mark it ``"interrupted"``.
 
@@ -207,15 +212,25 @@ def repair_log(csv_path: Path | str) -> int | None:
     if not path.is_file():
         return None
     with open(path, "rb+") as fh:
-        data = fh.read()
-        nul = data.find(b"\0")
-        whole = data[: nul if nul >= 0 else len(data)]
-        end = whole.rfind(b"\n") + 1
-        if end < len(data):
+        size = fh.seek(0, os.SEEK_END)
+        # only the tail can be unsynced (a second of rows at most), so the scan for lost pages and
+        # the cut look at the last REPAIR_TAIL_BYTES; the rows are counted in chunks
+        start = max(0, size - REPAIR_TAIL_BYTES)
+        fh.seek(start)
+        tail = fh.read()
+        nul = tail.find(b"\0")
+        end = start + tail.rfind(b"\n", 0, nul if nul >= 0 else len(tail)) + 1
+        if end < size:
             fh.truncate(end)
             fh.flush()
             os.fsync(fh.fileno())
-    rows = max(data[:end].count(b"\n") - 1, 0)  # less the header
+        fh.seek(0)
+        newlines, left = 0, end
+        while left > 0:
+            chunk = fh.read(min(left, 1 << 20))
+            newlines += chunk.count(b"\n")
+            left -= len(chunk)
+    rows = max(newlines - 1, 0)  # less the header
     meta_path = path.with_suffix(".json")
     try:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
