@@ -353,3 +353,101 @@ def test_a_run_started_right_after_one_that_ended_far_from_neutral_does_not_yank
         st.stop()
     finally:
         st.close()
+
+
+class _FullDisk:
+    """A log file on a disk that fills after ``budget`` characters (writes then fail with ENOSPC)."""
+
+    def __init__(self, fh: Any, budget: int) -> None:
+        self.fh, self.left = fh, budget
+
+    @property
+    def closed(self) -> bool:
+        return bool(self.fh.closed)
+
+    def write(self, text: str) -> int:
+        import errno
+
+        if len(text) > self.left:
+            self.left = 0
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.left -= len(text)
+        return int(self.fh.write(text))
+
+    def flush(self) -> None:
+        self.fh.flush()
+
+    def fileno(self) -> int:
+        return int(self.fh.fileno())
+
+    def close(self) -> None:
+        self.fh.close()
+
+
+@pytest.mark.parametrize("store_full", [False, True])
+def test_a_full_disk_mid_run_ends_it_as_a_fault_and_the_station_comes_back(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, store_full: bool) -> None:
+    """The log's writer thread died on ENOSPC and the run went on unrecorded; STOP then raised the
+    same error and left the station running. Now the station latches ``log_failed`` (safe state),
+    ends the run as a fault, and a store that cannot record that either does not hold it up."""
+    import app.engine.station as station_mod
+    from app.engine.station import RunSpec, Station
+
+    class OnFullDisk(RunLogWriter):
+        def __init__(self, *a: Any, **kw: Any) -> None:
+            super().__init__(*a, **kw)
+            self._fh = _FullDisk(self._fh, 20_000)  # type: ignore[assignment]  # ≈ 1.2 s of rows
+
+    class Sink:
+        def __init__(self) -> None:
+            self.ended: list[str] = []
+
+        def run_started(self, kind: str, spec: dict[str, Any], log_csv: str) -> int:
+            return 1
+
+        def run_finished(self, run_id: int, status: str, metrics: Any, result: Any) -> None:
+            if store_full:
+                raise OSError(28, "database or disk is full")
+            self.ended.append(status)
+
+    monkeypatch.setattr(station_mod, "RunLogWriter", OnFullDisk)
+    sink = Sink()
+    st = Station(data_dir=tmp_path, sink=sink)  # type: ignore[arg-type]
+    try:
+        st.connect()
+        st.start(RunSpec("SC-1", "default", 1.2, 3.0, "P-full"))
+        deadline = time.monotonic() + 10.0
+        while st.state.value != "fault":
+            assert time.monotonic() < deadline, "the run went on unrecorded"
+            time.sleep(0.05)
+        f = st.safety.fault
+        assert f is not None and f.code == "log_failed" and "No space left on device" in f.message, f
+        assert "free space in the data folder" in f.message
+        while st.status()["last_run"] is None:  # the watcher ends the run once a safe period is logged
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        assert st.status()["last_run"]["status"] == "fault" and st._job is None
+        assert sink.ended == ([] if store_full else ["fault"])
+        st.clear()
+        assert st.state.value == "disconnected"
+    finally:
+        st.close()
+
+
+def test_a_log_on_a_full_disk_closes_without_raising_and_says_why(tmp_path: Path) -> None:
+    """STOP closes the run's log: on a full disk that close raised, and the station stayed running."""
+    w = RunLogWriter(tmp_path, "full", {"rig": "rotary", "sample_rate_hz": 200.0, "p_atm_bar": 1.01325,
+                                        "working_pressure_bar": 3.0, "experiment": "workout", "human": True},
+                     threaded=True, write_every_s=0.02)
+    w._fh = _FullDisk(w._fh, 3000)  # type: ignore[assignment]
+    for i in range(400):
+        w.append([i / 200, 2, 2, 5, 5, 2, 2, 6, 0, 0, 0.1])
+        time.sleep(0.0005)
+    deadline = time.monotonic() + 5.0
+    while not w.error:  # the writer thread, not the loop, meets the full disk
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    assert w.error.startswith("No space left on device") and any(t.is_alive() for t in w._threads)
+    w.close("stopped")  # does not raise
+    meta = json.loads((tmp_path / "full.json").read_text())
+    assert meta["status"] == "stopped" and meta["write_error"].startswith("No space left on device")

@@ -88,6 +88,7 @@ class RunLogWriter:
         self._io_lock = threading.Lock()  # one writer of the file at a time
         self._last_flush = time.monotonic()
         self.rows = 0
+        self.error = ""  # the first failure to write or sync the log (a full disk), "" while none
         self._sync()
         atomic_write_text(self.json_path, json.dumps(self.meta, indent=1))
         self._done = threading.Event()
@@ -98,9 +99,18 @@ class RunLogWriter:
             for th in self._threads:
                 th.start()
 
+    def _failed(self, exc: OSError) -> None:
+        # the first failure is the cause (a full or failing disk); the writer keeps retrying, since
+        # the io buffer keeps what it could not write and space may come back
+        if not self.error:
+            self.error = f"{exc.strerror or exc} ({self.csv_path})"
+
     def _write_loop(self) -> None:
         while not self._done.wait(self.write_every_s):
-            self._write()
+            try:
+                self._write()
+            except OSError as exc:  # a dead writer thread had left the run going on unrecorded
+                self._failed(exc)
 
     def _sync_loop(self) -> None:
         # apart from the writer: an fsync that waits on a busy disk holds up neither the next
@@ -112,8 +122,11 @@ class RunLogWriter:
                 fd = self._fh.fileno()
             try:
                 os.fsync(fd)  # close() joins this thread (for up to 10 s) before it closes fd
-            except OSError:
-                return  # closed after all, by a close() that stopped waiting for this sync
+            except OSError as exc:
+                if self._fh.closed:
+                    return  # closed after all, by a close() that stopped waiting for this sync
+                self._failed(exc)
+                continue
             self._last_flush = time.monotonic()
 
     @staticmethod
@@ -168,17 +181,33 @@ class RunLogWriter:
         self._last_flush = time.monotonic()
 
     def close(self, status: str = "complete", **extra: Any) -> None:
-        """Flush, close and mark the run ``status`` in the metadata."""
+        """Flush, close and mark the run ``status`` in the metadata.
+
+        Never raises for a failing disk: the station must end the run whatever
+        the disk does (a full disk had made STOP raise and left the run going).
+        What failed is in :attr:`error`.
+        """
         if self._fh.closed:
             return
         self._done.set()
         for th in self._threads:
             th.join(10.0)
-        self.flush()
+        try:
+            self.flush()
+        except OSError as exc:
+            self._failed(exc)
         with self._io_lock:
-            self._fh.close()
+            try:
+                self._fh.close()  # flushes again, and closes the file even when that fails
+            except OSError as exc:
+                self._failed(exc)
         self.meta.update(extra, status=status, rows=self.rows, ended_unix=time.time())
-        atomic_write_text(self.json_path, json.dumps(self.meta, indent=1))
+        if self.error:
+            self.meta["write_error"] = self.error
+        try:
+            atomic_write_text(self.json_path, json.dumps(self.meta, indent=1))
+        except OSError as exc:
+            self._failed(exc)
 
     def __enter__(self) -> RunLogWriter:
         return self

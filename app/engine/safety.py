@@ -156,7 +156,8 @@ class Fault:
             ``sensor_stuck``, ``encoder_glitch``, ``pressure_jump``,
             ``torque_limit``, ``torque_saturation``, ``pressure_limit``,
             ``prv_not_following``, ``supply_lost``, ``controller_nan``,
-            ``overrun``, ``stall``, ``link_lost``, ``engine_error``).
+            ``overrun``, ``stall``, ``link_lost``, ``engine_error``, ``log_failed``: the
+            log of the work under way cannot be written, e.g. a full disk).
         message: What happened, for the operator.
         t: Engine time of detection [s] (NaN when not known).
         channel: The measurement or actuator concerned ("" if none).

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import bisect
 import enum
+import logging
 import math
 import sys
 import threading
@@ -51,6 +52,8 @@ CONTROL_RATE_HZ = 200.0  # thesis 3.3
 ROTARY_IDENT_RATE_HZ = 500.0  # thesis 4.2.1
 DEFAULT_PW_BAR = 3.0  # P_w of the thesis's HIL tests [bar abs] (SPEC §1)
 MIN_PARTIAL_WINDOW_S = 1.0  # a stopped run is scored only over at least this much of its window
+logger = logging.getLogger(__name__)
+
 PRESSURISE_S = 1.5  # both chambers brought to P_w before the user engages (as run_workout starts)
 
 
@@ -718,13 +721,7 @@ class Station:
         Legal everywhere (never a :class:`TransitionError`): pressing it twice,
         or while disconnected, still leaves a latched fault to clear.
         """
-        engine = self.engine
-
-        def now() -> float:  # read once the fault is in force (SafetySupervisor.trip)
-            last = engine.last_measurement if engine is not None else None
-            return last.t if last is not None else math.nan
-
-        fault = self.safety.trip("estop", f"emergency stop ({source})", now)
+        fault = self.safety.trip("estop", f"emergency stop ({source})", self._engine_now)
         with self._lock:
             if self._state != State.FAULT:
                 self.fault_message = fault.message  # the first fault latched, maybe an earlier one
@@ -911,10 +908,31 @@ class Station:
                         self._abort_procedure("fault")
                     continue
                 fault_seen = None
+                why = self._log_failure()
+                if why:  # a full or failing disk: the run went on unrecorded, and STOP raised
+                    self.safety.trip("log_failed", why, self._engine_now)
+                    continue
                 if self._job is not None and self._job.done:
                     self._finish_run("complete")
                 elif self._proc is not None and self._proc.finished:
                     self._finish_procedure()
+
+    def _engine_now(self) -> float:
+        """The engine's last completed period's time [s] (NaN before one): a fault tripped from another
+        thread reads it once the fault is in force (SafetySupervisor.trip)."""
+        engine = self.engine
+        last = engine.last_measurement if engine is not None else None
+        return last.t if last is not None else math.nan
+
+    def _log_failure(self) -> str:
+        """Why the work under way cannot be recorded ("" while it can)."""
+        for what, err in (("run", self._log.error if self._log is not None else ""),
+                          ("run", self._proc_log.error if self._proc_log is not None else ""),
+                          ("protocol", getattr(self._proc, "log_error", "") if self._proc is not None else "")):
+            if err:
+                return (f"the {what}'s log cannot be written ({err}): stopped so that nothing goes unrecorded; "
+                        "free space in the data folder, clear and start again")
+        return ""
 
     def _safe_period_logged(self) -> bool:
         """Whether the log holds a period that began after the fault was latched (so wrote the safe state).
@@ -975,12 +993,21 @@ class Station:
             result["fault"] = self._fault_detail()
         if log is not None:
             log.close(status, metrics=metrics)
-        if self.sink is not None and self._run_id is not None:
-            self.sink.run_finished(self._run_id, status, metrics, result)
+        self._store_end(status, metrics, result)
         self.last_run = {"run_id": self._run_id, "status": status, "metrics": metrics}
         self._job, self._log = None, None
         if self._state != State.FAULT:
             self._state = State.IDLE
+
+    def _store_end(self, status: str, metrics: dict[str, Any] | None, result: dict[str, Any]) -> None:
+        """Record how the run ended; a store that cannot take it (a full disk) does not keep the station
+        from ending the run: the run stays "running" there, and the next start calls it interrupted."""
+        if self.sink is None or self._run_id is None:
+            return
+        try:
+            self.sink.run_finished(self._run_id, status, metrics, result)
+        except Exception as exc:
+            logger.error("run %s ended %s but the store could not record it: %s", self._run_id, status, exc)
 
     def _fault_detail(self) -> dict[str, Any]:
         f = self.safety.fault
@@ -1005,8 +1032,7 @@ class Station:
             self._detach_recorder(self._proc_log)
             self._proc_log.close(status)
             self._proc_log = None
-        if self.sink is not None and self._run_id is not None:
-            self.sink.run_finished(self._run_id, status, None, result)
+        self._store_end(status, None, result)
         self.last_run = {"run_id": self._run_id, "status": status, "result": result}
         assert self.supervisor is not None
         self.supervisor.job = None

@@ -335,6 +335,8 @@ def write_log(directory: str | Path, name: str, data: np.ndarray, meta: dict[str
     w = RunLogWriter(directory, name, meta)
     w.append_many(np.asarray(data, dtype=float))
     w.close("complete")
+    if w.error:
+        raise OSError(f"{name}: the log could not be written: {w.error}")
     return w.csv_path
 
 

@@ -108,6 +108,8 @@ class _LogWriter:
                     w.append(arg)
                 elif what in ("close", "stop") and w is not None:
                     w.close(arg if what == "close" else "incomplete")
+                    if w.error:
+                        raise OSError(w.error)
                     if arg == "complete":
                         self.done.append(w.csv_path)
                         if self.on_log is not None:
@@ -175,6 +177,11 @@ class ProtocolProcedure(Procedure):
         self._logging = False
 
     # ------------------------------------------------------------ the engine's recorder
+    @property
+    def log_error(self) -> str:
+        """Why the experiments' logs cannot be written ("" while they can): the station stops on it."""
+        return self._logs.error if self._logs is not None else ""
+
     def append(self, row: tuple[float, ...]) -> None:
         """One period's row, into the log of the experiment under way (none between experiments)."""
         if self._logging and self._logs is not None:
