@@ -451,3 +451,39 @@ def test_a_log_on_a_full_disk_closes_without_raising_and_says_why(tmp_path: Path
     w.close("stopped")  # does not raise
     meta = json.loads((tmp_path / "full.json").read_text())
     assert meta["status"] == "stopped" and meta["write_error"].startswith("No space left on device")
+
+
+def test_a_run_that_cannot_be_recorded_does_not_start_and_changes_nothing(tmp_path: Path) -> None:
+    """A store that refuses the run (a full disk): the exception had come through as a 500, with the
+    run's log left open and its threads running; an identification had stopped the loop first."""
+    import sqlite3
+
+    from app.engine.station import RunSpec, Station, TransitionError
+
+    class FullStore:
+        def run_started(self, kind: str, spec: dict[str, Any], log_csv: str) -> int:
+            raise sqlite3.OperationalError("database or disk is full")
+
+        def run_finished(self, run_id: int, status: str, metrics: Any, result: Any) -> None:
+            raise AssertionError("nothing started")
+
+    st = Station(data_dir=tmp_path, sink=FullStore())  # type: ignore[arg-type]
+    try:
+        st.connect()
+        time.sleep(0.3)
+        threads = {t.name for t in threading.enumerate()}
+        with pytest.raises(TransitionError, match=r"cannot start while idle: the run cannot be recorded "
+                                                  r"\(database or disk is full\); free space"):
+            st.start(RunSpec("SC-1", "default", 1.2, 3.0, "P"))
+        with pytest.raises(TransitionError, match=r"cannot estimate while idle: the run cannot be recorded"):
+            st.run_protocol(scale=0.2)
+        assert st.state.value == "idle" and st._job is None and st._proc is None and st._log is None
+        assert not list((tmp_path / "runs").glob("*.csv")) if (tmp_path / "runs").exists() else True
+        assert {t.name for t in threading.enumerate()} - threads == set()  # no log writer left running
+        before = st.live.latest()
+        time.sleep(0.2)
+        after = st.live.latest()
+        assert before is not None and after is not None and after[0] > before[0]  # the loop runs on
+        assert st.engine is not None and st.engine.period == pytest.approx(1 / 200)
+    finally:
+        st.close()

@@ -577,9 +577,11 @@ class Station:
             meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": self.p_atm_bar,
                     "working_pressure_bar": spec.pw_bar, "experiment": "workout", "human": True,
                     "backend": backend.name, **asdict(spec)}
-            self._log = RunLogWriter(self.data_dir / "runs", name, meta, threaded=True)
-            self._run_id = self.sink.run_started("workout", asdict(spec), str(self._log.csv_path)) \
-                if self.sink else None
+            run_log, run_id = self._begin_record("start", "workout", asdict(spec),
+                                                 lambda: RunLogWriter(self.data_dir / "runs", name, meta,
+                                                                      threaded=True))
+            assert run_log is not None
+            self._log, self._run_id = run_log, run_id
             self._job = job
             assert self.engine is not None
             self.engine.recorder = self._log
@@ -613,19 +615,42 @@ class Station:
                 from app.engine.human import HumanProgram
 
                 set_program(HumanProgram.absent())  # nobody holds the handle during identification
-            self._stop_engine()
             rate = rate_hz or (ROTARY_IDENT_RATE_HZ if rig == "rotary" else LINEAR_IDENT_RATE_HZ)
+            # recorded first: a run that cannot be recorded changes nothing (the loop keeps running)
+            proc_log, run_id = self._begin_record(
+                "estimate", kind, {"procedure": procedure.name, **(spec or {})},
+                None if recorder is not None else lambda: self._procedure_log(kind, rig, rate, spec or {}))
+            self._stop_engine()
             self._proc, self._proc_kind, self._proc_fit = procedure, kind, fit
-            self._proc_log = None if recorder is not None else self._procedure_log(kind, rig, rate, spec or {})
-            self._run_id = self.sink.run_started(
-                kind, {"procedure": procedure.name, **(spec or {})},
-                str(self._proc_log.csv_path) if self._proc_log is not None else "") if self.sink else None
+            self._proc_log, self._run_id = proc_log, run_id
             self.supervisor.job = procedure
             self._start_engine(rate)
             assert self.engine is not None
             self.engine.recorder = recorder if recorder is not None else self._proc_log
             self._state = State.IDENTIFYING
             return self._run_id
+
+    def _begin_record(self, action: str, kind: RunKind, spec: dict[str, Any],
+                      make_log: Callable[[], RunLogWriter] | None) -> tuple[RunLogWriter | None, int | None]:
+        """Open the run's log and its row in the store, or raise :class:`TransitionError` saying why not.
+
+        A full disk or a store gone had let the log's exception through (a 500), left a log open
+        with its threads running when the store then failed, and, for an identification, the
+        engine stopped with the station still idle.
+        """
+        run_log = None
+        try:
+            run_log = make_log() if make_log is not None else None
+            run_id = self.sink.run_started(kind, spec, str(run_log.csv_path) if run_log is not None else "") \
+                if self.sink else None
+        except Exception as exc:  # sqlite3's errors are not OSErrors: any failure to record is one
+            if run_log is not None:  # a log of nothing, under a run nobody will see: not kept
+                run_log.close("failed")
+                run_log.csv_path.unlink(missing_ok=True)
+                run_log.json_path.unlink(missing_ok=True)
+            raise TransitionError(action, self.state, f"the run cannot be recorded ({exc}); free space in the "
+                                  "data folder, or check the run store") from exc
+        return run_log, run_id
 
     def _procedure_log(self, kind: str, rig: str, rate_hz: float, spec: dict[str, Any]) -> RunLogWriter:
         """The run log of an identification: every period the procedure drives, in the fixed format.
