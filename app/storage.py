@@ -116,6 +116,22 @@ def _redact(url: str) -> str:
     return f"{scheme}://{cred.split(':', 1)[0]}:***@{tail}"
 
 
+def _unavailable() -> tuple[type[Exception], ...]:
+    try:
+        import psycopg
+    except ImportError:  # pragma: no cover - psycopg is a project dependency
+        return (sqlite3.OperationalError,)
+    return (sqlite3.OperationalError, psycopg.OperationalError)
+
+
+_UNAVAILABLE = _unavailable()
+"""What a store that cannot be used now raises: a full disk, a locked file, a database gone."""
+
+
+class StoreUnavailable(RuntimeError):
+    """The store cannot take or give a statement now (a full disk, a locked or unreachable database)."""
+
+
 class DataDirInUse(RuntimeError):
     """Another process holds the data folder (its station is running)."""
 
@@ -263,11 +279,14 @@ class Store:
         if self.dialect == "postgresql":
             sql = sql.replace("?", "%s")
         with self._lock:
-            cur = self._db.execute(sql, args)
-            if cur.description is None:
-                return []
-            names = [d[0] for d in cur.description]
-            return [dict(zip(names, row, strict=True)) for row in cur.fetchall()]
+            try:
+                cur = self._db.execute(sql, args)
+                if cur.description is None:
+                    return []
+                names = [d[0] for d in cur.description]
+                return [dict(zip(names, row, strict=True)) for row in cur.fetchall()]
+            except _UNAVAILABLE as exc:  # the API answers 503 with this, not a bare 500
+                raise StoreUnavailable(f"the run store cannot be used now: {str(exc).strip()}") from exc
 
     def _insert(self, sql: str, args: tuple[Any, ...]) -> int:
         return int(self._exec(sql + " RETURNING id", args)[0]["id"])

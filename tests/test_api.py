@@ -574,3 +574,30 @@ def test_the_dashboard_history_names_every_kind_of_run() -> None:
     assert block is not None
     labelled = set(re.findall(r"(\w+): [`']", block.group(1)))
     assert labelled | {"workout"} == set(RUN_KINDS), sorted(set(RUN_KINDS) ^ (labelled | {"workout"}))
+
+
+def test_a_store_that_cannot_be_written_answers_503_saying_why(client: Any) -> None:
+    """A full disk under the SQLite store: its error had come through as a bare 500."""
+    import sqlite3
+
+    store = client.app.state.store
+    sid = client.post("/api/sessions", json={"person": "P-disk"}).json()["id"]
+
+    class FullDisk:
+        def __init__(self, db: Any) -> None:
+            self.db = db
+
+        def execute(self, sql: str, args: Any = ()) -> Any:
+            if sql.lstrip().upper().startswith(("UPDATE", "INSERT")):
+                raise sqlite3.OperationalError("database or disk is full")
+            return self.db.execute(sql, args)
+
+        def close(self) -> None:
+            self.db.close()
+
+    store._db = FullDisk(store._db)
+    r = client.patch(f"/api/sessions/{sid}", json={"notes": "left arm"})
+    assert r.status_code == 503 and r.json()["detail"] == "the run store cannot be used now: database or disk is full"
+    assert client.post("/api/sessions", json={"person": "P-disk"}).status_code == 503
+    assert client.get(f"/api/sessions/{sid}").json()["notes"] == ""  # reads still answer; nothing changed
+    store._db = store._db.db

@@ -29,7 +29,7 @@ from app.api.viser_gate import TICKET_S, Signer, ViserGate
 from app.engine.hardware.config import load_config
 from app.engine.params import ParameterError
 from app.engine.station import Station, TransitionError
-from app.storage import Store, claim_data_dir, release_data_dir
+from app.storage import Store, StoreUnavailable, claim_data_dir, release_data_dir
 
 if TYPE_CHECKING:
     from app.api.liveplots import LivePlots
@@ -148,7 +148,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   description="Control station of the pneumatic wrist/forearm rehabilitation robot (CWRR).",
                   responses={400: {"description": "The body is not readable JSON"},
                              413: {"description": "The body is larger than CWRR_MAX_BODY_BYTES "
-                                                  "(CWRR_MAX_UPLOAD_BYTES for a run-log upload)"}},
+                                                  "(CWRR_MAX_UPLOAD_BYTES for a run-log upload)"},
+                             503: {"description": "The run store cannot be used now (a full disk, a locked or "
+                                                  "unreachable database); the detail says which"}},
                   )
     app.state.settings = settings
     too_large = (f"request body too large: the limit is {settings.max_body_bytes} bytes "
@@ -177,6 +179,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        for m in r.methods}  # type: ignore[attr-defined]
             headers["Allow"] = ", ".join(sorted(methods))
         return await http_exception_handler(request, StarletteHTTPException(exc.status_code, exc.detail, headers))
+
+    @app.exception_handler(StoreUnavailable)
+    async def store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:
+        return JSONResponse(status_code=503, content={"detail": str(exc)})
 
     @app.exception_handler(TransitionError)
     async def conflict(request: Request, exc: TransitionError) -> JSONResponse:
