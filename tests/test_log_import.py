@@ -169,3 +169,22 @@ def test_logs_from_elsewhere_uploaded_then_diagnosed_by_run_id(client: TestClien
     run = client.get(f"/api/runs/{rid}").json()
     assert run["status"] == "complete", run["result"]
     assert run["result"]["verdict"]["effects"][:1] == ["sensor_bias"], run["result"]["verdict"]
+
+
+def test_an_upload_onto_a_full_disk_answers_503_and_leaves_nothing(
+        client: TestClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The disk fills while the log is written: a bare 500 before; now 503 saying so, no half log, no run."""
+    import errno
+
+    import app.api.routers.runs as runs_router
+
+    def full(*a: Any, **kw: Any) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(runs_router.np, "savetxt", full)
+    r = client.post("/api/runs", json={"name": "rig-1", "meta": META, "csv": _csv(_log(0.5))})
+    assert r.status_code == 503, r.text
+    assert r.json()["detail"] == "the log cannot be stored in the data folder: No space left on device"
+    assert _imported(client) == [] and not any((tmp_path / "imported").iterdir())
+    monkeypatch.undo()
+    assert client.post("/api/runs", json={"name": "rig-1", "meta": META, "csv": _csv(_log(0.5))}).status_code == 201

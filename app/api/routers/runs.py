@@ -21,6 +21,7 @@ from app.api.diagnosis_report import DiagnosisReport
 from app.api.models import PERSON_PATTERN, Documented, NotesIn, RunInfo, Series
 from app.engine.params import ParameterError
 from app.engine.station import RunKind
+from app.storage import StoreUnavailable
 
 router = APIRouter(prefix="/api/runs", tags=["runs"], dependencies=[READ], responses=AUTH_RESPONSES)
 NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"description": "No such run, or it has no time series"}}
@@ -222,10 +223,13 @@ def import_log(req: LogImport, store: StoreDep, request: Request) -> RunInfo:
     exports work like a recorded run's and whose id a diagnosis accepts in ``run_ids``."""
     data = _parse_log(req)
     root = Path(request.app.state.station.data_dir) / "imported"
-    root.mkdir(parents=True, exist_ok=True)
     # written in a temporary folder and renamed into place before the run is stored: a run never
     # points at a half-written log
-    tmp = Path(tempfile.mkdtemp(prefix=".upload-", dir=root))
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=".upload-", dir=root))
+    except OSError as exc:
+        raise StoreUnavailable(f"the log cannot be stored in the data folder: {exc.strerror or exc}") from exc
     try:
         from app.engine.sim import LOG_COLUMNS
 
@@ -237,11 +241,18 @@ def import_log(req: LogImport, store: StoreDep, request: Request) -> RunInfo:
                 os.fsync(fh.fileno())
         final = root / tmp.name.removeprefix(".upload-")
         tmp.rename(final)
+    except OSError as exc:  # a full disk: 503 saying so, and nothing left behind (it was a bare 500)
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise StoreUnavailable(f"the log cannot be stored in the data folder: {exc.strerror or exc}") from exc
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     spec = {"name": req.name, "meta": req.meta, "notes": req.notes, "rows": int(data.shape[0])}
-    run_id = store.run_started("imported", spec, str(final / f"{req.name}.csv"))
+    try:
+        run_id = store.run_started("imported", spec, str(final / f"{req.name}.csv"))
+    except StoreUnavailable:
+        shutil.rmtree(final, ignore_errors=True)  # no run points at it
+        raise
     duration = float(data[-1, 0] - data[0, 0])
     store.run_finished(run_id, "complete", None, {"rows": int(data.shape[0]), "duration_s": duration,
                                                   "rig": req.meta["rig"], "experiment": req.meta["experiment"]})
