@@ -489,6 +489,23 @@ def test_calibration_zeroes_the_torque_pressures_and_encoder_and_saves_them_with
         with pytest.raises(ParameterError, match="hold it still"):
             st.calibrate("encoder_zero", seconds=0.5)
         assert load_config(hw) == saved
+        # a configuration that cannot be saved (a full disk) is not applied either: 409 saying why
+        import errno
+
+        import app.engine.station as station_mod
+
+        def full(cfg: HardwareConfig, path: Path) -> None:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        orig = station_mod.save_config
+        station_mod.save_config = full  # type: ignore[assignment]
+        try:
+            with pytest.raises(TransitionError, match=r"the calibration cannot be saved to .*hw.yaml \(No space "
+                                                      r"left on device\); nothing changed"):
+                st.calibrate("pressure_offsets", seconds=0.5)  # vented as it is, whoever turns the handle
+        finally:
+            station_mod.save_config = orig
+        assert load_config(hw) == saved and st.hardware == saved
     finally:
         st.close()
         factory.close()

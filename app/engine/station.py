@@ -826,7 +826,11 @@ class Station:
                 new = cfg.calibrated(what, encoder=enc.model_copy(update={"zero_counts": enc.zero_counts + shift}))
                 before, after = {"zero_counts": enc.zero_counts}, {"zero_counts": enc.zero_counts + shift}
             if self.hardware_path is not None:
-                save_config(new, self.hardware_path)  # atomic: the old file or the new, never half
+                try:
+                    save_config(new, self.hardware_path)  # atomic: the old file or the new, never half
+                except OSError as exc:  # saved first: a calibration not saved is not applied either
+                    raise TransitionError("calibrate", self.state, f"the calibration cannot be saved to "
+                                          f"{self.hardware_path} ({exc.strerror or exc}); nothing changed") from exc
             self.backend.config = new  # type: ignore[union-attr]
             self.hardware = new
             date = getattr(new.calibration, what)
