@@ -218,6 +218,7 @@ class Store:
 
     def __init__(self, url: str, station: str = "") -> None:
         self._lock = threading.Lock()
+        self._url = url
         self.station = station
         self.dialect = "postgresql" if url.startswith(("postgresql://", "postgres://")) else "sqlite"
         if self.dialect == "postgresql":
@@ -279,14 +280,36 @@ class Store:
         if self.dialect == "postgresql":
             sql = sql.replace("?", "%s")
         with self._lock:
-            try:
-                cur = self._db.execute(sql, args)
-                if cur.description is None:
-                    return []
-                names = [d[0] for d in cur.description]
-                return [dict(zip(names, row, strict=True)) for row in cur.fetchall()]
-            except _UNAVAILABLE as exc:  # the API answers 503 with this, not a bare 500
-                raise StoreUnavailable(f"the run store cannot be used now: {str(exc).strip()}") from exc
+            for attempt in (1, 2):
+                try:
+                    cur = self._db.execute(sql, args)
+                    if cur.description is None:
+                        return []
+                    names = [d[0] for d in cur.description]
+                    return [dict(zip(names, row, strict=True)) for row in cur.fetchall()]
+                except _UNAVAILABLE as exc:  # the API answers 503 with this, not a bare 500
+                    if attempt == 1 and self._reconnected():
+                        continue
+                    raise StoreUnavailable(f"the run store cannot be used now: {str(exc).strip()}") from exc
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _reconnected(self) -> bool:
+        """A new PostgreSQL connection in place of one the server dropped (restarted, say); False if none.
+
+        The station had kept a dead connection until it was restarted itself: every store call
+        failed after a database restart.
+        """
+        if self.dialect != "postgresql" or not (self._db.closed or self._db.broken):
+            return False
+        import psycopg
+
+        try:
+            db = psycopg.connect(self._url, autocommit=True)
+        except psycopg.OperationalError:
+            return False
+        self._db.close()
+        self._db = db
+        return True
 
     def _insert(self, sql: str, args: tuple[Any, ...]) -> int:
         return int(self._exec(sql + " RETURNING id", args)[0]["id"])

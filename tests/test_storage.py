@@ -307,3 +307,20 @@ def test_a_long_log_is_repaired_from_its_tail_and_its_rows_counted_whole(
         fh.write(b"\0" * 300)  # lost pages after the cut row
     assert runlog.repair_log(csv) == 400
     assert len(read_log(csv).t) == 400 and json.loads(csv.with_suffix(".json").read_text())["rows"] == 400
+
+
+def test_a_store_whose_database_dropped_its_connection_reconnects(url: str) -> None:
+    """A PostgreSQL restarted under a running station: the store had kept its dead connection, and every
+    call failed until the station itself was restarted."""
+    if not url.startswith("postgresql"):
+        pytest.skip("a SQLite store has no connection to lose")
+    import psycopg
+
+    s = Store(url)
+    sid = s.add_session("P-pg", "")
+    with pytest.raises(psycopg.OperationalError):  # the server ends this connection, as a restart would
+        s._db.execute("SELECT pg_terminate_backend(pg_backend_pid())")
+    assert s._db.closed or s._db.broken
+    assert s.session(sid)["person"] == "P-pg"  # type: ignore[index]  # on a new connection
+    assert s.run_started("workout", {"scenario": "SC-1"}, "") > 0
+    s.close()
