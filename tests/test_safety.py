@@ -487,3 +487,41 @@ def test_a_run_that_cannot_be_recorded_does_not_start_and_changes_nothing(tmp_pa
         assert st.engine is not None and st.engine.period == pytest.approx(1 / 200)
     finally:
         st.close()
+
+
+def test_a_run_whose_scoring_fails_still_ends_and_is_recorded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bug in scoring (anything but the short window's ValueError) had come out of STOP, leaving the
+    station running; from the watcher it would have ended the watcher thread."""
+    import app.engine.station as station_mod
+    from app.engine.station import RunSpec, Station
+
+    def broken(*a: Any, **kw: Any) -> Any:
+        raise KeyError("mae")
+
+    class Sink:
+        result: Any = None
+
+        def run_started(self, kind: str, spec: dict[str, Any], log_csv: str) -> int:
+            return 1
+
+        def run_finished(self, run_id: int, status: str, metrics: Any, result: Any) -> None:
+            self.result = (status, metrics, result)
+
+    monkeypatch.setattr(station_mod, "score_case", broken)
+    sink = Sink()
+    st = Station(data_dir=tmp_path, sink=sink)  # type: ignore[arg-type]
+    try:
+        st.connect()
+        st.start(RunSpec("SC-1", "default", 1.2, 3.0, "P"))
+        deadline = time.monotonic() + 10.0
+        while st._job is None or len(st._job.rows) <= 10:  # past pressurising: rows to score
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        st.stop()
+        assert st.state.value == "idle" and st.last_run is not None and st.last_run["status"] == "stopped"
+        status, metrics, result = sink.result
+        assert status == "stopped" and metrics is None and result["note"] == "scoring failed (KeyError: 'mae')"
+        (meta,) = (tmp_path / "runs").glob("run-*.json")
+        assert json.loads(meta.read_text())["status"] == "stopped"
+    finally:
+        st.close()

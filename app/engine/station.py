@@ -1018,6 +1018,9 @@ class Station:
                                       f"metrics need at least {MIN_PARTIAL_WINDOW_S:g} s")
             except ValueError as exc:  # too short a window (stopped early)
                 result = {"window_s": None, "note": str(exc)}
+            except Exception as exc:  # a scoring bug must not keep the run from ending (STOP, the watcher)
+                logger.exception("run %s: scoring failed", self._run_id)
+                result = {"window_s": None, "note": f"scoring failed ({type(exc).__name__}: {exc})"}
         if status == "fault":
             result["fault"] = self._fault_detail()
         if log is not None:
