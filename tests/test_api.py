@@ -143,6 +143,10 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
     run = client.get(f"/api/runs/{run_id}").json()
     assert run["status"] == "complete" and run["person"] == "P-007" and run["has_series"]
     assert run["session_id"] == sess["id"] and run["spec"]["workout"] == {"amplitude_deg": 90.0}
+    # which station ran it (one database may hold several rigs' runs): its id, host and folder
+    folder = Path(client.app.state.settings.data_dir).resolve()  # type: ignore[attr-defined]
+    sid = (folder / ".station-id").read_text().strip()
+    assert run["station"].startswith(sid + " ") and run["station"].endswith(str(folder))
     assert client.get(f"/api/sessions/{sess['id']}").json()["runs"] == [run_id]
     m = run["metrics"]
     assert m is not None and set(m) == {"mae", "iae", "itae", "evar", "rmse", "maxae"}, run

@@ -459,6 +459,8 @@ class RunInfo(Documented):
         notes: Notes.
         notes_edited: When the notes were last changed after the start [Unix s]; None: never.
         session_id: The therapy session it belongs to.
+        station: The station that ran it: its lasting id, then its host and
+            data folder ("" for runs stored before stations were named).
         has_series: Whether a time-series log exists.
     """
 
@@ -474,6 +476,7 @@ class RunInfo(Documented):
     notes: str
     notes_edited: float | None = None
     session_id: int | None = None
+    station: str = ""
     has_series: bool
 
 

@@ -30,7 +30,7 @@ NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"description": "No such run,
 def _info(r: dict[str, Any]) -> RunInfo:
     return RunInfo(**{k: r[k] for k in ("id", "kind", "status", "started", "ended", "metrics", "result", "person",
                                         "notes", "session_id")}, spec=r["spec"] or {},
-                   notes_edited=r.get("notes_edited"),
+                   notes_edited=r.get("notes_edited"), station=r.get("station") or "",
                    has_series=bool(r["log_csv"]) and Path(r["log_csv"]).is_file())
 
 
