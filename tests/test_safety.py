@@ -384,6 +384,22 @@ class _FullDisk:
         self.fh.close()
 
 
+class _Sink:
+    """A run store that records how each run ended, or, ``full``, cannot record it (a full disk)."""
+
+    def __init__(self, full: bool = False) -> None:
+        self.full = full
+        self.ended: list[tuple[str, Any, Any]] = []
+
+    def run_started(self, kind: str, spec: dict[str, Any], log_csv: str) -> int:
+        return 1
+
+    def run_finished(self, run_id: int, status: str, metrics: Any, result: Any) -> None:
+        if self.full:
+            raise OSError(28, "database or disk is full")
+        self.ended.append((status, metrics, result))
+
+
 @pytest.mark.parametrize("store_full", [False, True])
 def test_a_full_disk_mid_run_ends_it_as_a_fault_and_the_station_comes_back(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, store_full: bool) -> None:
@@ -398,20 +414,8 @@ def test_a_full_disk_mid_run_ends_it_as_a_fault_and_the_station_comes_back(
             super().__init__(*a, **kw)
             self._fh = _FullDisk(self._fh, 20_000)  # type: ignore[assignment]  # ≈ 1.2 s of rows
 
-    class Sink:
-        def __init__(self) -> None:
-            self.ended: list[str] = []
-
-        def run_started(self, kind: str, spec: dict[str, Any], log_csv: str) -> int:
-            return 1
-
-        def run_finished(self, run_id: int, status: str, metrics: Any, result: Any) -> None:
-            if store_full:
-                raise OSError(28, "database or disk is full")
-            self.ended.append(status)
-
     monkeypatch.setattr(station_mod, "RunLogWriter", OnFullDisk)
-    sink = Sink()
+    sink = _Sink(full=store_full)
     st = Station(data_dir=tmp_path, sink=sink)  # type: ignore[arg-type]
     try:
         st.connect()
@@ -427,7 +431,7 @@ def test_a_full_disk_mid_run_ends_it_as_a_fault_and_the_station_comes_back(
             assert time.monotonic() < deadline
             time.sleep(0.05)
         assert st.status()["last_run"]["status"] == "fault" and st._job is None
-        assert sink.ended == ([] if store_full else ["fault"])
+        assert [e[0] for e in sink.ended] == ([] if store_full else ["fault"])
         st.clear()
         assert st.state.value == "disconnected"
     finally:
@@ -498,17 +502,8 @@ def test_a_run_whose_scoring_fails_still_ends_and_is_recorded(tmp_path: Path, mo
     def broken(*a: Any, **kw: Any) -> Any:
         raise KeyError("mae")
 
-    class Sink:
-        result: Any = None
-
-        def run_started(self, kind: str, spec: dict[str, Any], log_csv: str) -> int:
-            return 1
-
-        def run_finished(self, run_id: int, status: str, metrics: Any, result: Any) -> None:
-            self.result = (status, metrics, result)
-
     monkeypatch.setattr(station_mod, "score_case", broken)
-    sink = Sink()
+    sink = _Sink()
     st = Station(data_dir=tmp_path, sink=sink)  # type: ignore[arg-type]
     try:
         st.connect()
@@ -519,7 +514,7 @@ def test_a_run_whose_scoring_fails_still_ends_and_is_recorded(tmp_path: Path, mo
             time.sleep(0.05)
         st.stop()
         assert st.state.value == "idle" and st.last_run is not None and st.last_run["status"] == "stopped"
-        status, metrics, result = sink.result
+        ((status, metrics, result),) = sink.ended
         assert status == "stopped" and metrics is None and result["note"] == "scoring failed (KeyError: 'mae')"
         (meta,) = (tmp_path / "runs").glob("run-*.json")
         assert json.loads(meta.read_text())["status"] == "stopped"
