@@ -520,3 +520,41 @@ def test_a_run_whose_scoring_fails_still_ends_and_is_recorded(tmp_path: Path, mo
         assert json.loads(meta.read_text())["status"] == "stopped"
     finally:
         st.close()
+
+
+def test_a_failure_ending_a_run_takes_it_off_the_station_and_the_watcher_goes_on(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The watcher thread ends runs that end by themselves or by a fault; an unforeseen error in it had
+    ended the thread, and the station could then never end a run again."""
+    from app.engine.station import RunSpec, Station
+
+    def broken(self: Station, status: str) -> None:
+        raise RuntimeError("ending failed")
+
+    sink = _Sink()
+    st = Station(data_dir=tmp_path, sink=sink)  # type: ignore[arg-type]
+    try:
+        st.connect()
+        st.start(RunSpec("SC-1", "default", 1.2, 3.0, "P"))
+        time.sleep(0.3)
+        monkeypatch.setattr(Station, "_finish_run", broken)
+        st.estop("test")
+        deadline = time.monotonic() + 5.0
+        while st._job is not None:
+            assert time.monotonic() < deadline, "the run was never taken off the station"
+            time.sleep(0.05)
+        assert st.state.value == "fault" and st.safety.fault is not None and st.safety.fault.code == "estop"
+        ((status, metrics, result),) = sink.ended
+        assert status == "fault" and metrics is None
+        assert result == {"error": "ending the work under way failed (RuntimeError: ending failed)"}
+        (meta,) = (tmp_path / "runs").glob("run-*.json")
+        assert json.loads(meta.read_text())["status"] == "fault"
+        assert st._watch is not None and st._watch.is_alive()
+        monkeypatch.undo()
+        st.clear()
+        st.connect()  # and the station works again: a run starts and ends as ever
+        st.start(RunSpec("SC-1", "default", 1.2, 3.0, "P"))
+        st.stop()
+        assert [e[0] for e in sink.ended] == ["fault", "stopped"]
+    finally:
+        st.close()

@@ -925,26 +925,53 @@ class Station:
             if time.monotonic() - frozen_at >= REFREEZE_S:
                 self.heap_refreeze_ms = refreeze_heap()
                 frozen_at = time.monotonic()
-            with self._lock:
-                if self.state == State.FAULT:
-                    fault_seen = fault_seen or time.monotonic()
-                    # the record ends with the safe state in it: wait for a period after the fault
-                    # (at most 0.5 s: a dead loop will not log one)
-                    if self._job is not None and (self._safe_period_logged()
-                                                  or time.monotonic() - fault_seen > 0.5):
-                        self._finish_run("fault")
-                    if self._proc is not None:
-                        self._abort_procedure("fault")
-                    continue
-                fault_seen = None
-                why = self._log_failure()
-                if why:  # a full or failing disk: the run went on unrecorded, and STOP raised
-                    self.safety.trip("log_failed", why, self._engine_now)
-                    continue
-                if self._job is not None and self._job.done:
-                    self._finish_run("complete")
-                elif self._proc is not None and self._proc.finished:
-                    self._finish_procedure()
+            try:
+                fault_seen = self._watch_once(fault_seen)
+            except Exception as exc:  # an unforeseen error must not end the thread that ends runs
+                logger.exception("station watcher")
+                why = f"ending the work under way failed ({type(exc).__name__}: {exc})"
+                self.safety.trip("engine_error", why, self._engine_now)
+                with self._lock:
+                    self._drop_work(why)
+
+    def _drop_work(self, why: str) -> None:
+        """Take the work under way off the station after ending it failed (the fault is latched)."""
+        for run_log in (self._log, self._proc_log):
+            if run_log is not None:
+                run_log.close("fault")  # never raises for the disk
+        if self._job is not None or self._proc is not None:
+            self._store_end("fault", None, {"error": why})
+            self.last_run = {"run_id": self._run_id, "status": "fault", "metrics": None}
+        if self.supervisor is not None:
+            self.supervisor.job = None
+        if self.engine is not None:
+            self.engine.recorder = None
+        if self._proc is not None:
+            self._proc.cancel()
+        self._job, self._log, self._proc_log, self._proc = None, None, None, None
+
+    def _watch_once(self, fault_seen: float | None) -> float | None:
+        """One look of the watcher; returns when it first saw the latched fault (None: no fault)."""
+        with self._lock:
+            if self.state == State.FAULT:
+                fault_seen = fault_seen or time.monotonic()
+                # the record ends with the safe state in it: wait for a period after the fault
+                # (at most 0.5 s: a dead loop will not log one)
+                if self._job is not None and (self._safe_period_logged()
+                                              or time.monotonic() - fault_seen > 0.5):
+                    self._finish_run("fault")
+                if self._proc is not None:
+                    self._abort_procedure("fault")
+                return fault_seen
+            why = self._log_failure()
+            if why:  # a full or failing disk: the run went on unrecorded, and STOP raised
+                self.safety.trip("log_failed", why, self._engine_now)
+                return None
+            if self._job is not None and self._job.done:
+                self._finish_run("complete")
+            elif self._proc is not None and self._proc.finished:
+                self._finish_procedure()
+            return None
 
     def _engine_now(self) -> float:
         """The engine's last completed period's time [s] (NaN before one): a fault tripped from another
