@@ -257,3 +257,19 @@ def test_a_prv_controller_compiles_its_kernel_when_built_not_when_first_stepped(
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
     built, stepped = map(int, out.stdout.split())
     assert built >= 1 and stepped == built, (built, stepped)
+
+
+def test_the_controllers_atmosphere_is_the_labs_and_packs_into_the_pipeline() -> None:
+    """P = z + P_atm (Eq 3.7): the controllers command above the lab's atmosphere, over the range the
+    simulated rig allows (0.5–1.2 bar abs); the simulator at 0.6 bar pressurises to P_w."""
+    from dataclasses import replace as _replace
+
+    from app.engine.params import PlantParams
+    from app.engine.sim import run_workout
+
+    assert ControllerConfig(p_atm_bar=0.6).pack()[0][cpl.P_PATM] == 0.6
+    assert ControllerConfig().pack()[0][cpl.P_PATM] == 1.01325
+    with pytest.raises(ParameterError, match="p_atm_bar"):
+        ControllerConfig(p_atm_bar=0.4)
+    r = run_workout(_replace(PlantParams(), p_atm=0.6e5), duration=1.0)
+    assert r.meta["p_atm_bar"] == 0.6 and abs(r.log[-1, 5] - 3.0) < 0.05  # p_a at P_w = 3 bar abs

@@ -74,7 +74,7 @@ class ControllerConfig:
 
     def __post_init__(self) -> None:
         check_working_pressure(self.pw_bar)
-        check_range("p_atm_bar", self.p_atm_bar, 0.7, 1.1, unit="bar abs")
+        check_range("p_atm_bar", self.p_atm_bar, 0.5, 1.2, unit="bar abs")  # as PlantParams.p_atm allows
         if self.pid_gains is not None:
             if len(self.pid_gains) != 2 or any(len(g) != 3 for g in self.pid_gains):
                 raise ParameterError("pid_gains must be ((K_p, K_i, K_d) of PRV-a, (K_p, K_i, K_d) of PRV-b)")
