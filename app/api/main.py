@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import os
 import re
 import socket
 import uuid
@@ -52,11 +51,11 @@ def station_name(data_dir: str | Path) -> str:
     except FileNotFoundError:
         sid = ""
     if not sid:
+        from app.engine.runlog import atomic_write_text
+
         sid = uuid.uuid4().hex
         folder.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".station-id.tmp-{os.getpid()}")
-        tmp.write_text(sid + "\n", encoding="utf-8")
-        os.replace(tmp, path)  # the folder is claimed (claim_data_dir): no other station writes it
+        atomic_write_text(path, sid + "\n")  # the folder is claimed (claim_data_dir): no other station writes it
     return f"{sid} {socket.gethostname()}:{folder}"
 
 

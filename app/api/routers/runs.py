@@ -225,14 +225,12 @@ def import_log(req: LogImport, store: StoreDep, request: Request) -> RunInfo:
     root = Path(request.app.state.station.data_dir) / "imported"
     # written in a temporary folder and renamed into place before the run is stored: a run never
     # points at a half-written log
-    try:
-        root.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=".upload-", dir=root))
-    except OSError as exc:
-        raise StoreUnavailable(f"the log cannot be stored in the data folder: {exc.strerror or exc}") from exc
+    tmp: Path | None = None
     try:
         from app.engine.sim import LOG_COLUMNS
 
+        root.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=".upload-", dir=root))
         np.savetxt(tmp / f"{req.name}.csv", data, delimiter=",", header=",".join(LOG_COLUMNS), comments="",
                    fmt="%.9g")
         (tmp / f"{req.name}.json").write_text(json.dumps(req.meta, indent=1), encoding="utf-8")
@@ -241,11 +239,11 @@ def import_log(req: LogImport, store: StoreDep, request: Request) -> RunInfo:
                 os.fsync(fh.fileno())
         final = root / tmp.name.removeprefix(".upload-")
         tmp.rename(final)
-    except OSError as exc:  # a full disk: 503 saying so, and nothing left behind (it was a bare 500)
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise StoreUnavailable(f"the log cannot be stored in the data folder: {exc.strerror or exc}") from exc
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+    except BaseException as exc:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(exc, OSError):  # a full disk: 503 saying so, and nothing left behind (it was a bare 500)
+            raise StoreUnavailable(f"the log cannot be stored in the data folder: {exc.strerror or exc}") from exc
         raise
     spec = {"name": req.name, "meta": req.meta, "notes": req.notes, "rows": int(data.shape[0])}
     try:

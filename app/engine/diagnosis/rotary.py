@@ -347,14 +347,19 @@ def _clipped(p: Param, bound: tuple[float, float] | None) -> Param:
     return dataclasses.replace(p, lo=max(p.lo, bound[0]), hi=min(p.hi, bound[1]))
 
 
+def samples_since(event: np.ndarray) -> np.ndarray:
+    """Per sample, how many samples have passed since the last one where ``event`` holds (0 there; one
+    more than the index where it has not held yet, as if it held just before the first sample)."""
+    idx = np.arange(len(event))
+    return idx - np.maximum.accumulate(np.where(event, idx, -1))
+
+
 def settled(e: Experiment, hold_s: float, tol_v: float = 0.05) -> np.ndarray:
     """Per sample, whether none of the four commands has moved by more than ``tol_v`` [V] for ``hold_s`` [s]."""
     u = e.inputs
     cmds = np.column_stack([u["z_a"], u["z_b"], u["u_a"], u["u_b"]])
     changed = np.r_[True, (np.abs(np.diff(cmds, axis=0)) > tol_v).any(axis=1)]
-    idx = np.arange(len(changed))
-    since = idx - np.maximum.accumulate(np.where(changed, idx, 0))  # samples since the last change
-    return np.asarray(since * e.dt >= hold_s)
+    return np.asarray(samples_since(changed) * e.dt >= hold_s)
 
 
 def share_agreeing(per_log: Iterable[tuple[np.ndarray, np.ndarray]]) -> tuple[float, int]:

@@ -305,10 +305,8 @@ def vented_atmosphere(exps: list[Experiment]) -> dict[str, Any]:
                 continue
             cmd = e.inputs[u]
             vents = (cmd - 5.0 if ch == "p_a" else 5.0 - cmd) >= DCV_OPEN_V
-            n = max(1, int(round(VENT_HELD_S / e.dt)))
-            # held: the last n samples all vent (a run of vents at least n long up to here)
-            runs = np.convolve(vents.astype(np.int32), np.ones(n, dtype=np.int32))[: len(vents)]
-            held = vents & (runs >= n)
+            # held: the last n samples all vent (n or more since the last that did not)
+            held = rotary.samples_since(~vents) >= max(1, int(round(VENT_HELD_S / e.dt)))
             parts.append(e.channels[ch][held] - float(e.meta["p_atm_bar"]))
         d = np.concatenate(parts) if parts else np.zeros(0)
         out[ch] = {"offset_bar": float(np.median(d)) if d.size else float("nan"), "samples": int(d.size)}
