@@ -31,6 +31,7 @@ from app.engine.diagnosis.logs import (
     read_chamber_leak,
     read_emps,
     read_log,
+    read_logdir,
     sampling_irregularity,
     write_log,
 )
@@ -68,6 +69,15 @@ def test_a_log_in_the_fixed_format_round_trips(tmp_path: Path) -> None:
     np.testing.assert_allclose(exp.inputs["u_b"], 10.0)
     assert exp.dt == pytest.approx(0.005)
 
+
+
+def test_a_log_whose_name_holds_dots_reads_by_either_file_its_stem_or_its_folder(tmp_path: Path) -> None:
+    # Path.with_suffix had turned "sweep.rep2" into "sweep.csv", a file that is not there
+    data = _frame()
+    write_log(tmp_path, "sweep.rep2", data, META)
+    for given in ("sweep.rep2", "sweep.rep2.csv", "sweep.rep2.json"):
+        assert read_log(tmp_path / given).name == "sweep.rep2"
+    assert [e.name for e in read_logdir(tmp_path)] == ["sweep.rep2"]
 
 def test_a_log_from_a_windows_tool_reads_the_same(tmp_path: Path) -> None:
     """A byte-order mark, CRLF line ends and blanks after the commas change nothing."""

@@ -24,6 +24,7 @@ from app.engine.hardware.config import (
     ReplaySource,
     SafeOutputs,
     load_config,
+    parse_config,
     save_config,
 )
 from app.engine.hardware.quanser import MISSING, QuanserRig, WatchdogExpired, load_hil
@@ -366,6 +367,30 @@ def test_a_replayed_log_drives_the_station_like_a_rig(tmp_path: Path) -> None:
             st.run_protocol(scale=0.5)
         assert st.state.value == "idle" and st.status()["run_id"] is None
         assert "estimate" not in st.allowed() and "start" in st.allowed()  # the dashboard greys those buttons
+    finally:
+        st.close()
+
+
+def test_a_replayed_log_brings_its_own_atmosphere_unless_the_configuration_sets_one(tmp_path: Path) -> None:
+    import json
+
+    from app.engine.station import Station
+
+    path = _recorded_run(tmp_path)
+    meta_path = path.with_suffix(".json")
+    meta_path.write_text(json.dumps({**json.loads(meta_path.read_text()), "p_atm_bar": 0.92}))
+    cfg = HardwareConfig(backend="replay", replay=ReplaySource(log=str(path)))
+    assert cfg.p_atm_bar == pytest.approx(0.92)  # it had been sea level, the default
+    assert parse_config({"backend": "replay", "replay": {"log": str(path.with_suffix(""))}}).p_atm_bar == 0.92
+    save_config(cfg, tmp_path / "hw.yaml")
+    assert load_config(tmp_path / "hw.yaml").p_atm_bar == pytest.approx(0.92)  # and kept when saved
+    assert HardwareConfig(backend="replay", replay=ReplaySource(log=str(path)), p_atm_bar=1.0).p_atm_bar == 1.0
+    # a log that is not there is named by the backend when the station connects, not here
+    assert HardwareConfig(backend="replay", replay=ReplaySource(log=str(tmp_path / "none.csv"))).p_atm_bar \
+        == pytest.approx(1.01325)
+    st = Station(hardware=cfg, data_dir=tmp_path / "data")
+    try:
+        assert st.p_atm_bar == pytest.approx(0.92) and st.safety.p_atm == pytest.approx(0.92e5)
     finally:
         st.close()
 

@@ -145,6 +145,28 @@ def test_a_log_cut_short_is_repaired_to_its_whole_rows_and_marked_interrupted(tm
     assert repair_log(tmp_path / "none.csv") is None
 
 
+def test_a_log_name_taken_already_gets_a_suffix_and_a_taken_log_is_never_overwritten(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from app.engine import runlog
+
+    # the clock set back a second: the next run's name is the last one's; it had been refused (409)
+    monkeypatch.setattr(runlog.time, "time", lambda: 1_800_000_000.25)
+    first = runlog.new_log_name(tmp_path, "run")
+    assert first.startswith("run-") and first.endswith("-250")
+    w = _log_cut_short(tmp_path, 3)
+    w.rename(tmp_path / f"{first}.csv")
+    assert runlog.new_log_name(tmp_path, "run") == f"{first}-2"
+    (tmp_path / f"{first}-2").mkdir()  # a protocol's folder takes a name too
+    assert runlog.new_log_name(tmp_path, "run") == f"{first}-3"
+    assert runlog.new_log_name(tmp_path, "rotary_friction") != f"{first}-3"
+    assert runlog.new_log_name(tmp_path / "none", "run") == first
+    before = (tmp_path / f"{first}.csv").read_bytes()
+    with pytest.raises(FileExistsError, match="already exists"):
+        runlog.RunLogWriter(tmp_path, first, {"rig": "rotary", "sample_rate_hz": 200.0, "p_atm_bar": 1.013,
+                                              "working_pressure_bar": 3.0, "experiment": "x", "human": False})
+    assert (tmp_path / f"{first}.csv").read_bytes() == before
+
+
 def test_one_station_per_data_folder_and_a_killed_one_leaves_no_lock(tmp_path: Path) -> None:
     import subprocess
     import sys

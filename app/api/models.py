@@ -8,6 +8,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from app.engine.constants import P_ATM_BAR
+
 
 def attribute_docs(doc: str | None) -> dict[str, str]:
     """The entries of a Google-style docstring's ``Attributes:`` section.
@@ -145,7 +147,7 @@ class EngineStatus(Documented):
     last_run: dict[str, Any] | None = None
     safety: dict[str, Any] | None = None
     calibration: dict[str, str | None] | None = None
-    p_atm_bar: float = 1.01325
+    p_atm_bar: float = P_ATM_BAR
 
 
 class CalibrateRequest(Documented):

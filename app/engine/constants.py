@@ -25,5 +25,7 @@ T0_ISO: float = 293.15
 """ISO 6358 reference temperature [K]."""
 BAR: float = 1.0e5
 """Pascal per bar."""
+P_ATM_BAR: float = P_ATM / BAR
+"""The standard atmosphere [bar abs]: the default wherever a lab has not said its own."""
 SONIC_CONDUCTANCE_UNIT: float = 1.0e-3 / 1.0e5
 """One l/(s·bar) expressed in m³/(s·Pa), the unit used by FESTO datasheets for C."""

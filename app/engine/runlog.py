@@ -47,6 +47,24 @@ def atomic_write_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+def new_log_name(directory: Path | str, prefix: str) -> str:
+    """A name for a new log (or log folder) in ``directory``: ``PREFIX-YYYYMMDD-HHMMSS-mmm``.
+
+    The local time to the millisecond; a name already taken there (the
+    computer's clock set back, an NTP step) gets ``-2``, ``-3``, … after it,
+    so a run is never refused for its name.
+    """
+    now = time.time()
+    name = f"{prefix}-{time.strftime('%Y%m%d-%H%M%S', time.localtime(now))}-{int(now * 1e3) % 1000:03d}"
+    d = Path(directory)
+    taken = {p.name for p in d.glob(f"{name}*")} if d.is_dir() else set()
+    candidate, n = name, 1
+    while any(t == candidate or t.startswith(f"{candidate}.") for t in taken):
+        n += 1
+        candidate = f"{name}-{n}"
+    return candidate
+
+
 class RunLogWriter:
     """Appends one run's rows to ``DIR/NAME.csv`` and keeps ``DIR/NAME.json``.
 
@@ -76,12 +94,14 @@ class RunLogWriter:
         self.name = name
         self.csv_path = self.dir / f"{name}.csv"
         self.json_path = self.dir / f"{name}.json"
-        if self.csv_path.exists():
-            raise FileExistsError(f"log {self.csv_path} already exists")
         self.meta = dict(meta, status="running", started_unix=time.time(), columns=list(LOG_COLUMNS))
         self.flush_every_s = flush_every_s
         self.write_every_s = min(write_every_s, flush_every_s)
-        self._fh = open(self.csv_path, "w", encoding="utf-8", newline="")
+        try:
+            # "x": the check and the creation are one step, so no other writer's log is overwritten
+            self._fh = open(self.csv_path, "x", encoding="utf-8", newline="")
+        except FileExistsError:
+            raise FileExistsError(f"log {self.csv_path} already exists") from None
         self._fh.write(",".join(LOG_COLUMNS) + "\n")
         self._buf: list[str] = []
         self._buf_lock = threading.Lock()  # appends vs. the writer taking the buffer

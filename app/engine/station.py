@@ -44,7 +44,7 @@ from app.engine.hardware.config import HardwareConfig, save_config
 from app.engine.hardware.factory import make_factory
 from app.engine.loop import REFREEZE_S, Controller, Engine, Recorder, WallClock, refreeze_heap, settle_heap
 from app.engine.params import ParameterError, PlantParams, SensorParams, check_range
-from app.engine.runlog import RunLogWriter
+from app.engine.runlog import RunLogWriter, new_log_name
 from app.engine.safety import SafetyLimits, SafetySupervisor
 from app.engine.scenarios import SCENARIOS, Case, ScenarioSettings, case_controller, case_program, score_case
 
@@ -573,7 +573,7 @@ class Station:
                     set_dist(0.0, settings.dp_b_bar)
 
             job = RunJob(spec, ctl, t_end, t_d, program_start, disturb, pressurise_s=pressurise_s)
-            name = time.strftime("run-%Y%m%d-%H%M%S") + f"-{int(time.time() * 1e3) % 1000:03d}"
+            name = new_log_name(self.data_dir / "runs", "run")
             meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": self.p_atm_bar,
                     "working_pressure_bar": spec.pw_bar, "experiment": "workout", "human": True,
                     "backend": backend.name, **asdict(spec)}
@@ -670,8 +670,8 @@ class Station:
             **({"working_pressure_note": "the thesis's default: the procedure sets its own pressures"}
                if pw is None else {}),
             **({"cylinder": self.rig.cylinder} if rig != "rotary" else {})}
-        name = kind + time.strftime("-%Y%m%d-%H%M%S") + f"-{int(time.time() * 1e3) % 1000:03d}"
-        return RunLogWriter(self.data_dir / "runs", name, meta, threaded=True)
+        runs = self.data_dir / "runs"
+        return RunLogWriter(runs, new_log_name(runs, kind), meta, threaded=True)
 
     def run_protocol(self, repetitions: int = 2, scale: float = 1.0, kinds: list[str] | None = None,
                      person: str = "", notes: str = "", session_id: int | None = None) -> int | None:
@@ -694,8 +694,7 @@ class Station:
         with self._lock:
             self.require("estimate", "rotary")
             assert self.backend is not None
-            outdir = self.data_dir / "runs" / (time.strftime("protocol-%Y%m%d-%H%M%S")
-                                               + f"-{int(time.time() * 1e3) % 1000:03d}")
+            outdir = self.data_dir / "runs" / new_log_name(self.data_dir / "runs", "protocol")
             sink = self.sink
             logs: list[dict[str, Any]] = []
             who: dict[str, Any] = {"person": person, "session_id": session_id}

@@ -55,6 +55,7 @@ def _sim() -> None:
 def _replay() -> None:
     import numpy as np
 
+    from app.engine.constants import P_ATM_BAR
     from app.engine.diagnosis.logs import Experiment
     from app.engine.diagnosis.rotary import RotaryFamily
     from app.engine.ident.dcv import compile_integrator
@@ -73,7 +74,7 @@ def _replay() -> None:
                                  "u_a": np.full_like(t, 5.0), "u_b": np.full_like(t, 5.0)},
                      {"p_a": noisy(3.0, 0.003), "p_b": noisy(3.0, 0.003), "p_s": noisy(7.0, 0.003),
                       "theta": theta, "omega": np.gradient(theta, t), "torque": noisy(0.0, 0.01)},
-                     {"rig": "rotary", "sample_rate_hz": 200.0, "p_atm_bar": 1.01325, "working_pressure_bar": 3.0,
+                     {"rig": "rotary", "sample_rate_hz": 200.0, "p_atm_bar": P_ATM_BAR, "working_pressure_bar": 3.0,
                       "experiment": "warm", "human": True})
     fam = RotaryFamily()
     fam.predict(fam.prepare(exp), {s.name: s.x0 for s in fam.baseline()}, ())

@@ -24,6 +24,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 from scipy.signal import butter, filtfilt
 
+from app.engine.constants import P_ATM_BAR
 from app.engine.diagnosis.core import Param, white_noise_sd
 from app.engine.diagnosis.logs import Experiment, on_uniform_grid, unscored_near_fills
 
@@ -86,7 +87,7 @@ class ChamberFamily:
 
     def prepare(self, exp: Experiment) -> _ChamberPrep:
         p = exp.channels["p"]
-        return _ChamberPrep(exp.t, p, white_noise_sd(p), float(exp.meta.get("p_atm_bar", 1.01325)))
+        return _ChamberPrep(exp.t, p, white_noise_sd(p), float(exp.meta.get("p_atm_bar", P_ATM_BAR)))
 
     def measured(self, prep: _ChamberPrep) -> dict[str, np.ndarray]:
         return {"p": prep.p}
@@ -117,7 +118,7 @@ class ChamberFamily:
         return sol.y[0] if sol.success and sol.y.shape[1] == t.size else np.full(t.shape, np.nan)
 
     def leak_on_the_rig(self, report: dict[str, Any], working_pressure_bar: float = WORKING_PRESSURE_BAR,
-                        horizon_s: float = LEAK_HORIZON_S, p_atm_bar: float = 1.01325) -> dict[str, Any] | None:
+                        horizon_s: float = LEAK_HORIZON_S, p_atm_bar: float = P_ATM_BAR) -> dict[str, Any] | None:
         """What a chamber's fitted leak would do on the rig: the pressure a closed chamber loses.
 
         A leak can be beyond doubt in a record taken at 7–8 bar over minutes and still be too

@@ -281,12 +281,21 @@ def check_frame(name: str, columns: list[str], data: np.ndarray, meta: dict[str,
                              "theta [rad] and omega [rad/s], CCW positive both")
 
 
+def log_paths(path: str | Path) -> tuple[Path, Path]:
+    """The ``NAME.csv`` and ``NAME.json`` of a log given by either file or its stem.
+
+    Only a final ``.csv`` or ``.json`` is taken off: a name may hold dots of its
+    own (``sweep.rep2``), which ``Path.with_suffix`` would have cut.
+    """
+    p = Path(path)
+    stem = p.name[: -len(p.suffix)] if p.suffix in (".csv", ".json") else p.name
+    return p.with_name(stem + ".csv"), p.with_name(stem + ".json")
+
+
 def read_log(path: str | Path) -> Experiment:
     """Read and check one ``NAME.csv`` + ``NAME.json`` pair (give either file or the stem)."""
-    p = Path(path)
-    stem = p.with_suffix("") if p.suffix in (".csv", ".json") else p
-    csv_path, json_path = stem.with_suffix(".csv"), stem.with_suffix(".json")
-    name = stem.name
+    csv_path, json_path = log_paths(path)
+    name = csv_path.stem
     if not csv_path.is_file():
         raise LogFormatError(f"{name}: {csv_path} does not exist")
     if not json_path.is_file():
@@ -321,7 +330,7 @@ def read_logdir(directory: str | Path) -> list[Experiment]:
     d = Path(directory)
     if not d.is_dir():
         raise LogFormatError(f"{d}: not a directory")
-    stems = sorted({p.with_suffix("") for p in d.glob("*.csv")})
+    stems = sorted(d.glob("*.csv"))
     if not stems:
         raise LogFormatError(f"{d}: no NAME.csv + NAME.json logs")
     return [read_log(s) for s in stems]

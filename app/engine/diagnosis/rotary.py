@@ -61,7 +61,7 @@ from numba import njit
 from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 from scipy.signal import butter, fftconvolve, filtfilt
 
-from app.engine.constants import BAR, P_ATM
+from app.engine.constants import BAR, P_ATM, P_ATM_BAR
 from app.engine.diagnosis.core import Param, white_noise_sd
 from app.engine.diagnosis.families import WORKING_PRESSURE_BAR
 from app.engine.diagnosis.logs import Experiment, on_uniform_grid, speed_of, unscored_near_fills
@@ -719,7 +719,7 @@ class RotaryFamily:
             fills = (5.0 - valve if side == "a" else valve - 5.0) >= DCV_OPEN_V
             vents = (valve - 5.0 if side == "a" else 5.0 - valve) >= DCV_OPEN_V
             use = (fills | vents) & (z >= min_z_v) & settled(e, settled_s)
-            p_atm = float(e.meta.get("p_atm_bar", 1.01325))
+            p_atm = float(e.meta.get("p_atm_bar", P_ATM_BAR))
             near_regulator = np.abs(p - (p_atm + z)) < np.abs(p - p_atm)
             return use, near_regulator == fills
 

@@ -34,12 +34,14 @@ Example::
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from app.engine.constants import P_ATM_BAR
 from app.engine.hardware.base import RIG_KINDS, SAFE_COMMAND, Command
 from app.engine.params import ParameterError, validation_reasons
 
@@ -318,12 +320,35 @@ class HardwareConfig(_Strict):
     outputs: Outputs = Outputs()
     safe_outputs: SafeOutputs = SafeOutputs()
     speed_filter_hz: Annotated[float, Field(gt=0.0, le=500.0)] = 25.0
-    p_atm_bar: Annotated[float, Field(ge=0.7, le=1.1)] = 1.01325
+    p_atm_bar: Annotated[float, Field(ge=0.7, le=1.1)] = P_ATM_BAR
     limits: dict[str, float] = {}
     modbus: ModbusLink | None = None
     quanser: QuanserCard | None = None
     replay: ReplaySource | None = None
     calibration: Calibration = Calibration()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _replayed_atmosphere(cls, data: Any) -> Any:
+        # A replayed log is the rig, so its atmosphere is the lab's: the station's controllers,
+        # its logs and a diagnosis of them had taken sea level for a log recorded at 0.9 bar.
+        # A value set here wins (a log whose JSON is wrong); an unreadable log is left to the
+        # backend, which names what is wrong with it when the station connects.
+        if not (isinstance(data, dict) and data.get("backend") == "replay" and "p_atm_bar" not in data):
+            return data
+        src = data.get("replay")
+        log = src.get("log") if isinstance(src, dict) else getattr(src, "log", None)
+        if not isinstance(log, str):
+            return data
+        from app.engine.diagnosis.logs import log_paths
+
+        try:
+            p_atm = json.loads(log_paths(log)[1].read_text(encoding="utf-8-sig")).get("p_atm_bar")
+        except (OSError, ValueError, AttributeError):
+            return data
+        if isinstance(p_atm, int | float) and 0.7 <= p_atm <= 1.1:
+            return {**data, "p_atm_bar": float(p_atm)}
+        return data
 
     @model_validator(mode="after")
     def _backend_section(self) -> HardwareConfig:

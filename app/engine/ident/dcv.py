@@ -57,7 +57,7 @@ from numba import njit
 from scipy.ndimage import uniform_filter1d
 from scipy.optimize import brentq, least_squares
 
-from app.engine.constants import BAR, CP_AIR, GAMMA_AIR, R_AIR
+from app.engine.constants import BAR, CP_AIR, GAMMA_AIR, P_ATM_BAR, R_AIR
 from app.engine.hardware.base import Command
 from app.engine.ident.gui_rules import MSG_PW, MSG_REASONABLE
 from app.engine.ident.procedure import Procedure, Script
@@ -221,7 +221,7 @@ class CPRData:
     """Every CPR experiment, in run order, with the conditions they ran under."""
 
     inputs: DCVInputs
-    p_atm_bar: float = 1.01325
+    p_atm_bar: float = P_ATM_BAR
     tests: list[CPRTest] = field(default_factory=list)
 
     def select(self, mode: str, ps_bar: float | None = None) -> list[CPRTest]:
@@ -753,7 +753,7 @@ class DCVFlowEstimator:
     def __init__(self, fit_ps_bar: float = FIT_PS_BAR) -> None:
         self.fit_ps_bar = fit_ps_bar
         self.params_: dict[str, ModeModel] = {}
-        self.p_atm_ = 1.01325 * BAR
+        self.p_atm_ = P_ATM_BAR * BAR
         self.inputs_: DCVInputs | None = None
 
     def fit(self, data: CPRData) -> DCVFlowEstimator:

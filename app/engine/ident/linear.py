@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 from scipy.signal import savgol_filter
 
+from app.engine.constants import P_ATM_BAR
 from app.engine.hardware.base import Command
 from app.engine.ident.fitting import (
     Direction,
@@ -122,7 +123,7 @@ class LinearFrictionProcedure(Procedure):
 
     name = "linear_friction"
 
-    def __init__(self, inputs: LinearInputs, seed: int = 0, p_atm_bar: float = 1.01325,
+    def __init__(self, inputs: LinearInputs, seed: int = 0, p_atm_bar: float = P_ATM_BAR,
                  settle_s: float = 0.3) -> None:
         super().__init__(vent_s=0.5)
         self.inputs = inputs

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
+from app.engine.constants import P_ATM_BAR
 from app.engine.control import pipeline as cpl
 from app.engine.control.blocks import PRVController
 from app.engine.control.config import ControllerConfig
@@ -73,7 +74,7 @@ class AutotuneSpec:
     periods: int = 2
     n_filter: float = 100.0
     initial: tuple[float, float, float] = INITIAL_GAINS
-    p_atm_bar: float = 1.01325
+    p_atm_bar: float = P_ATM_BAR
 
     def __post_init__(self) -> None:
         if self.side not in ("a", "b"):

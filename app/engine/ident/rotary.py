@@ -40,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from app.engine.constants import P_ATM_BAR
 from app.engine.hardware.base import Command
 from app.engine.ident.fitting import FrictionData, FrictionFit, breakaway_level, curve_r2, fit_friction
 from app.engine.ident.gui_rules import RotaryInputs
@@ -133,7 +134,7 @@ class RotaryFrictionProcedure(Procedure):
 
     name = "rotary_friction"
 
-    def __init__(self, inputs: RotaryInputs, seed: int = 0, p_atm_bar: float = 1.01325, settle_s: float = 0.3,
+    def __init__(self, inputs: RotaryInputs, seed: int = 0, p_atm_bar: float = P_ATM_BAR, settle_s: float = 0.3,
                  run_timeout_s: float = 8.0) -> None:
         super().__init__(vent_s=0.5)
         self.inputs = inputs
@@ -326,7 +327,7 @@ class OpenLoopValidation(RotaryFrictionProcedure):
 
     name = "open_loop_validation"
 
-    def __init__(self, inputs: RotaryInputs, n_tests: int = 10, seed: int = 100, p_atm_bar: float = 1.01325) -> None:
+    def __init__(self, inputs: RotaryInputs, n_tests: int = 10, seed: int = 100, p_atm_bar: float = P_ATM_BAR) -> None:
         super().__init__(inputs, seed=seed, p_atm_bar=p_atm_bar)
         self.n_tests = n_tests
         self.progress.total_tests = 2 * n_tests
