@@ -28,12 +28,16 @@ def test_state_machine_refuses_illegal_actions_with_409_and_why(client: TestClie
     assert st["state"] == "disconnected" and st["allowed"] == ["connect"]
     r = client.post("/api/engine/start", json={})
     assert r.status_code == 409 and "not connected" in r.json()["detail"]
-    assert client.post("/api/engine/stop").status_code == 409
+    r = client.post("/api/engine/stop")
+    assert r.status_code == 409 and r.json()["detail"] == "cannot stop while disconnected: nothing is running"
+    r = client.post("/api/engine/disconnect")
+    assert r.status_code == 409 and "there is nothing to disconnect" in r.json()["detail"]
     r = client.post("/api/engine/connect")
     assert r.status_code == 200 and r.json()["state"] == "idle"
     assert set(r.json()["allowed"]) == {"disconnect", "start", "estimate"}
     r = client.post("/api/engine/connect")
-    assert r.status_code == 409 and "idle" in r.json()["detail"]
+    assert r.status_code == 409 and r.json()["detail"] == "cannot connect while idle: the rig is connected " \
+        "already; disconnect first to connect another"
     r = client.post("/api/engine/clear")
     assert r.status_code == 409 and r.json()["detail"] == "cannot clear while idle: no fault is latched; there is " \
         "nothing to clear"
@@ -190,16 +194,48 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
     mat = client.get(f"/api/runs/{run_id}/export", params={"fmt": "mat"})
     from scipy.io import loadmat
 
-    d = loadmat(io.BytesIO(mat.content))
+    d = loadmat(io.BytesIO(mat.content), simplify_cells=True)
     assert d["torque"].size == len(full["rows"]) and float(np.squeeze(d["metric_mae"])) == pytest.approx(m["mae"])
+    # what a MATLAB user needs beside the columns: the sample rate, the atmosphere, the scenario, the target
+    assert d["meta"]["sample_rate_hz"] == 200.0 and d["meta"]["p_atm_bar"] == pytest.approx(1.01325)
+    assert d["meta"]["scenario"] == "SC-1" and d["meta"]["target_nm"] == pytest.approx(1.2), d["meta"]
+    assert d["run_id"] == run_id and "bar abs" in d["units"]
     import pyarrow.parquet as pq
 
     pqt = pq.read_table(io.BytesIO(client.get(f"/api/runs/{run_id}/export", params={"fmt": "parquet"}).content))
     assert pqt.column_names == full["columns"] and pqt.num_rows == len(full["rows"])
     assert pqt.schema.metadata[b"kind"] == b"workout" and b"mae" in pqt.schema.metadata[b"metrics"]
+    assert json.loads(pqt.schema.metadata[b"log"])["sample_rate_hz"] == 200.0
     assert client.get("/api/runs/99999").status_code == 404
     assert client.get("/api/runs/99999/export").status_code == 404
     assert client.get("/api/runs/99999/export", params={"fmt": "parquet"}).status_code == 404
+
+
+def test_a_run_whose_metrics_hold_a_null_exports_to_matlab(client: Any, tmp_path: Path) -> None:
+    """A metric a run could not give is stored as null (strict JSON); savemat had refused None (a 500).
+    And a series read while its last row is half written leaves that row out."""
+    from scipy.io import loadmat
+
+    from app.engine.sim import LOG_COLUMNS, run_workout
+
+    res = run_workout(duration=1.0)
+    text = ",".join(LOG_COLUMNS) + "\n" + "\n".join(",".join(repr(float(v)) for v in row) for row in res.log)
+    r = client.post("/api/runs", json={"name": "short", "meta": res.meta, "csv": text})
+    assert r.status_code == 201, r.text
+    rid = r.json()["id"]
+    client.app.state.store.run_finished(rid, "complete", {"mae": 0.1, "evar": None, "1st-half": 0.2},
+                                        {"windows": [[0.0, 0.5], [0.5, 1.0]]})
+    mat = client.get(f"/api/runs/{rid}/export", params={"fmt": "mat"})
+    assert mat.status_code == 200, mat.text
+    d = loadmat(io.BytesIO(mat.content), simplify_cells=True)
+    assert d["metric_mae"] == pytest.approx(0.1) and np.size(d["metric_evar"]) == 0  # MATLAB's []
+    assert d["metric_1st_half"] == pytest.approx(0.2) and d["meta"]["rig"] == "rotary"
+    # read while its writer is mid-row, cut just after a comma: that row is not one yet (it had been a 500)
+    rows = client.get(f"/api/runs/{rid}/series").json()["rows_total"]
+    path = Path(client.app.state.store.run(rid)["log_csv"])
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write("1.005,2,2,5,5,3,3,6,0.1,0.2,")
+    assert client.get(f"/api/runs/{rid}/series").json()["rows_total"] == rows
 
 
 def test_runs_are_listed_by_person_and_kind_and_a_misspelt_filter_is_refused(client: TestClient) -> None:

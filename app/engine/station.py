@@ -89,6 +89,17 @@ _WHY: dict[State, str] = {
 }
 
 
+_WHY_ACTION: dict[tuple[str, State], str] = {
+    ("connect", State.IDLE): "the rig is connected already; disconnect first to connect another",
+    ("disconnect", State.DISCONNECTED): "the rig is not connected; there is nothing to disconnect",
+    ("stop", State.DISCONNECTED): "nothing is running",
+    ("clear", State.DISCONNECTED): "no fault is latched; there is nothing to clear",
+    ("clear", State.IDLE): "no fault is latched; there is nothing to clear",
+}
+"""Where the state's own reason (:data:`_WHY`) would not answer the action: connecting while idle is
+refused because a rig is connected, not because nothing runs."""
+
+
 class TransitionError(RuntimeError):
     """An action that is illegal in the current state (the API answers 409).
 
@@ -100,7 +111,8 @@ class TransitionError(RuntimeError):
     def __init__(self, action: str, state: State, why: str | None = None) -> None:
         self.action = action
         self.state = state
-        super().__init__(f"cannot {action} while {state.value}: {why or _WHY[state]}")
+        super().__init__(f"cannot {action} while {state.value}: "
+                         f"{why or _WHY_ACTION.get((action, state)) or _WHY[state]}")
 
 
 LINEAR_IDENT_RATE_HZ = 200.0
@@ -469,9 +481,7 @@ class Station:
     def _require(self, action: str) -> None:
         st = self.state
         if st not in ALLOWED[action]:
-            # clearing is refused for what is missing (a fault), not for what the state is doing
-            raise TransitionError(action, st, "no fault is latched; there is nothing to clear"
-                                  if action == "clear" else None)
+            raise TransitionError(action, st)
 
     def require(self, action: str, rig: str | None = None) -> None:
         """Raise :class:`TransitionError` unless ``action`` is legal now (on ``rig``, if given).

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -51,8 +52,10 @@ def _log_path(r: dict[str, Any]) -> Path:
 def _load(r: dict[str, Any]) -> tuple[list[str], np.ndarray]:
     with open(_log_path(r), encoding="utf-8") as fh:
         cols = fh.readline().strip().split(",")
-        # a run still being written may end in a partial line; keep the complete ones
-        lines = [ln for ln in fh.read().splitlines() if ln.count(",") == len(cols) - 1]
+        body = fh.read()
+    # a run still being written may end in a partial line (one cut after its last comma has every
+    # comma a row has): only lines the writer ended are rows
+    lines = [ln for ln in body[: body.rfind("\n") + 1].splitlines() if ln.count(",") == len(cols) - 1]
     data = np.loadtxt(lines, delimiter=",", ndmin=2) if lines else np.zeros((0, len(cols)))
     return cols, data
 
@@ -128,6 +131,33 @@ def _meta(r: dict[str, Any]) -> dict[str, Any]:
     return meta if isinstance(meta, dict) else {}
 
 
+UNITS = "t s; z_a,z_b,u_a,u_b V; p_a,p_b,p_s bar abs; theta rad; omega rad/s; torque N·m"
+"""The log columns' units, said in every export."""
+
+
+def _matlab_name(k: str) -> str:
+    """``k`` as a MATLAB name (a letter first, then letters, digits and ``_``, at most 63): savemat skips
+    a variable or field it would refuse, with only a warning."""
+    name = re.sub(r"\W", "_", k, flags=re.ASCII)
+    return (name if name[:1].isalpha() else f"x{name}")[:63]
+
+
+def _for_matlab(v: Any) -> Any:
+    """A JSON value as ``scipy.io.savemat`` writes it: objects become structs (their keys
+    :func:`_matlab_name`), null an empty matrix (savemat refuses None)."""
+    if v is None:
+        return np.empty((0, 0))
+    if isinstance(v, dict):
+        return {_matlab_name(str(k)): _for_matlab(x) for k, x in v.items()}
+    if isinstance(v, list):
+        if v and all(isinstance(x, int | float) and not isinstance(x, bool) for x in v):
+            return np.asarray(v, dtype=float)
+        cells = np.empty(len(v), dtype=object)
+        cells[:] = [_for_matlab(x) for x in v]
+        return cells
+    return v
+
+
 FILES: dict[int | str, dict[str, Any]] = {
     **NOT_FOUND, 200: {"content": {"text/csv": {}, "application/x-matlab-data": {},
                                    "application/vnd.apache.parquet": {}}}}
@@ -143,7 +173,7 @@ def _parquet(r: dict[str, Any]) -> bytes:
     cols, data = _load(r)
     meta = {"run_id": str(r["id"]), "kind": r["kind"], "status": r["status"],
             "spec": json.dumps(r["spec"] or {}), "metrics": json.dumps(r["metrics"] or {}),
-            "units": "t s; z_a,z_b,u_a,u_b V; p_a,p_b,p_s bar abs; theta rad; omega rad/s; torque N·m"}
+            "log": json.dumps(_meta(r)), "units": UNITS}
     table = pa.table({c: data[:, i] for i, c in enumerate(cols)}).replace_schema_metadata(meta)
     buf = pa.BufferOutputStream()
     pq.write_table(table, buf, compression="zstd")
@@ -153,8 +183,9 @@ def _parquet(r: dict[str, Any]) -> bytes:
 @router.get("/{run_id}/export", responses=FILES,
             summary="Download the time series as CSV, Parquet or MATLAB .mat")
 def export(run_id: IdPath, store: StoreDep, fmt: Annotated[Literal["csv", "parquet", "mat"], Query(
-        description="csv (the log format), parquet (spec and metrics in its metadata) or mat (MATLAB: one "
-                    "variable per column, metric_<name> per metric)")] = "csv"
+        description="csv (the log format), parquet (spec, metrics and the log's JSON header in its metadata) or "
+                    "mat (MATLAB: one variable per column, metric_<name> per metric, the log's JSON header as "
+                    "the struct meta, run_id and units)")] = "csv"
         ) -> Response:
     r = _get(store, run_id)
     if fmt == "csv":
@@ -169,7 +200,11 @@ def export(run_id: IdPath, store: StoreDep, fmt: Annotated[Literal["csv", "parqu
     mdict: dict[str, Any] = {c: data[:, i] for i, c in enumerate(cols)}
     mdict["columns"] = np.array(cols, dtype=object)
     for k, v in (r["metrics"] or {}).items():
-        mdict[f"metric_{k}"] = v
+        mdict[_matlab_name(f"metric_{k}")] = _for_matlab(v)
+    # what a MATLAB user needs beside the columns: the sample rate, the atmosphere, the scenario, the target
+    mdict["meta"] = _for_matlab(_meta(r))
+    mdict["run_id"] = int(r["id"])
+    mdict["units"] = UNITS
     savemat(buf, mdict, do_compression=True)
     return Response(buf.getvalue(), media_type="application/x-matlab-data",
                     headers={"Content-Disposition": f'attachment; filename="run-{run_id}.mat"'})
