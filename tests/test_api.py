@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -317,6 +318,9 @@ def test_identification_reports_progress_and_cancels_to_idle(client: TestClient)
     assert st["state"] == "idle" and st["last_run"]["status"] == "cancelled"
     runs = client.get("/api/runs", params={"kind": "rotary_friction"}).json()
     assert runs[0]["status"] == "cancelled" and runs[0]["result"]["progress"]["done_tests"] >= 1
+    # too few tests for a fit is what stopping early means, not an error ("cancelled (ValueError: …)")
+    res = runs[0]["result"]
+    assert "error" not in res and res["note"].startswith("stopped before there was enough to fit"), res
     assert client.get("/api/health").json()["rate_hz"] == 200.0  # back at the control rate
 
 
@@ -605,7 +609,6 @@ def test_the_pid_autotuner_runs_on_the_rotary_rig_and_reports_beside_the_thesis(
 
 def test_the_dashboard_history_names_every_kind_of_run() -> None:
     """A kind added to ``station.RunKind`` needs words on the history (it would show its code name)."""
-    import re
 
     from app.engine.station import RUN_KINDS
 
@@ -641,3 +644,13 @@ def test_a_store_that_cannot_be_written_answers_503_saying_why(client: Any) -> N
     assert client.post("/api/sessions", json={"person": "P-disk"}).status_code == 503
     assert client.get(f"/api/sessions/{sid}").json()["notes"] == ""  # reads still answer; nothing changed
     store._db = store._db.db
+
+
+def test_both_pages_link_an_icon_the_server_has(client: TestClient) -> None:
+    """Without one the browser asked for /favicon.ico on every page load and logged its 404 as an error."""
+    for page in ("/", "/static/diagnosis.html"):
+        html = client.get(page).text
+        icon = re.search(r'<link rel="icon" href="([^"]+)"', html)
+        assert icon is not None, page
+        r = client.get(icon.group(1))
+        assert r.status_code == 200 and r.headers["content-type"].startswith("image/svg+xml"), page

@@ -271,6 +271,16 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     expect(trace).to_be_visible()
     expect(trace).to_have_attribute("data-run", str(run_id))
     assert float(page.locator("#metrics tr").first.locator("td").nth(1).inner_text()) == pytest.approx(mae, rel=1e-3)
+    # a metric the run could not give is stored as null: it reads "–" (its toPrecision had thrown, the panel empty)
+    with urllib.request.urlopen(f"{base}/api/runs/{run_id}", timeout=10) as r:
+        stored = json.loads(r.read())
+    page.route(f"**/api/runs/{run_id}", lambda route: route.fulfill(
+        json={**stored, "metrics": {**stored["metrics"], "evar": None}}))
+    page.evaluate("document.getElementById('last').textContent = ''")
+    page.locator("#runs tbody tr").first.locator("td").nth(2).click()
+    expect(page.locator("#metrics tr").nth(3)).to_have_text("e_var [N²·m²]–")
+    expect(page.locator("#hist-msg")).not_to_contain_text(f"run {run_id}:")
+    page.unroute(f"**/api/runs/{run_id}")
 
     # issue 7: the emergency stop is always there and always enabled; it latches until cleared
     estop = page.locator("#estop")

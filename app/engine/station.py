@@ -1118,7 +1118,12 @@ class Station:
         result: dict[str, Any] | None = None
         try:
             result = self._proc_fit(proc)
-        except Exception as exc:  # too little data to fit (cancelled early): keep the status
+        except ValueError as exc:
+            # stopped before the fit had enough: that is what the operator chose, not an error (the
+            # dashboard had shown "cancelled (ValueError: …)"); a finished procedure that cannot be fitted is one
+            result = ({"note": f"stopped before there was enough to fit ({exc})"} if status == "cancelled"
+                      else {"error": f"{type(exc).__name__}: {exc}"})
+        except Exception as exc:  # a bug in a fit: keep the status, say what it was
             result = {"error": f"{type(exc).__name__}: {exc}"}
         self._record_procedure(status, {"progress": proc.progress.as_dict(), **(result or {})})
         self._stop_engine()
