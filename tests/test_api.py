@@ -490,10 +490,10 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
             st.live.append((k * 0.005, 0.01 * k, tgt, 2.9, 3.1, ref, ref, 0.1, 0.2))
         # nobody watching: the charts are not encoded at all, but a finished run's metrics are
         # drawn when it ends (not later, mid-exercise, for a viewer who connects then)
-        st.last_run = {"run_id": 7, "status": "complete", "metrics": {"mae": 0.05}}
+        st.last_run = {"run_id": 7, "status": "complete", "metrics": {"mae": 0.05, "evar": None}}
         plots.publish()
         assert np.asarray(plots.h_torque.data[0]).size == 2  # still the placeholder built at start-up
-        assert "Run 7" in plots.h_metrics.content
+        assert "Run 7" in plots.h_metrics.content and "| evar | – |" in plots.h_metrics.content
         viewer = viser_viewer(port)
         deadline = time.monotonic() + 10
         while not plots._viewers:  # a bare websocket (no 3-D view, no camera) counts as watching

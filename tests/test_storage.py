@@ -273,6 +273,12 @@ def test_the_radar_compares_a_run_with_like_runs_only(url: str) -> None:
     ref = run("fuzzy", "P-1", 0.10, status="stopped")  # the run shown is shown whatever its ending
     got = latest_per_controller(store, ref)
     assert got == {"fuzzy": {"mae": 0.10}, "default": {"mae": 0.30}, "pid": {"mae": 0.20}}
+    # a metric a run could not give is stored as null: such a run has no polygon (the chart had raised)
+    store.run_finished(run("default", "P-1", 0.29), "complete", {"mae": 0.29, "evar": None}, None)
+    assert latest_per_controller(store, ref) == got
+    blank = run("pid", "P-1", 0.5)
+    store.run_finished(blank, "stopped", {"mae": None}, None)
+    assert latest_per_controller(store, blank) == {}
     assert latest_per_controller(store, run("pid", "", 0.5)) == {"pid": {"mae": 0.5}}  # nobody named: no one else
     assert latest_per_controller(store, 999) == {}
 

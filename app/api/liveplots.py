@@ -170,7 +170,7 @@ class LivePlots:
         if not m:
             self.h_metrics.content = f"Run {last.get('run_id')}: {last.get('status')}"
             return
-        rows = "\n".join(f"| {k} | {v:.4g} |" for k, v in m.items())
+        rows = "\n".join(f"| {k} | {'–' if v is None else format(v, '.4g')} |" for k, v in m.items())
         head = f"**Run {last.get('run_id')}** ({last.get('status')})"
         self.h_metrics.content = f"{head}\n\n| metric | value |\n|---|---|\n{rows}"
         values = self._latest_per_controller(last.get("run_id"))
@@ -182,6 +182,11 @@ class LivePlots:
         if self.store is None or run_id is None:
             return {}
         return latest_per_controller(self.store, int(run_id))
+
+
+def _drawable(metrics: Any) -> bool:
+    """Metrics a radar can draw: a metric a run could not give is stored as null, which has no radius."""
+    return bool(metrics) and all(isinstance(v, int | float) and math.isfinite(v) for v in metrics.values())
 
 
 def latest_per_controller(store: Any, run_id: int) -> dict[str, dict[str, float]]:
@@ -199,14 +204,15 @@ def latest_per_controller(store: Any, run_id: int) -> dict[str, dict[str, float]
         Controller → metrics; empty when the run has no metrics.
     """
     ref = store.run(run_id)
-    if ref is None or not ref.get("metrics"):
+    if ref is None or not _drawable(ref.get("metrics")):
         return {}
     spec = ref["spec"] or {}
     sc, tg = spec.get("scenario"), spec.get("target_nm")
     out: dict[str, dict[str, float]] = {str(spec.get("controller")): ref["metrics"]}
     for r in store.runs(200, 0, "workout", person=ref.get("person") or ""):
         s = r["spec"] or {}
-        if r["status"] == "complete" and r.get("metrics") and s.get("scenario") == sc and s.get("target_nm") == tg \
+        if r["status"] == "complete" and _drawable(r.get("metrics")) and s.get("scenario") == sc \
+                and s.get("target_nm") == tg \
                 and s.get("controller") not in out:
             out[s["controller"]] = r["metrics"]
     return out
