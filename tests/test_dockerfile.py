@@ -52,6 +52,32 @@ def test_the_dockerfile_promises_what_the_issue_asks() -> None:
     assert "8000" in exposed and "8080" in exposed  # the API and the viser port
     cmd = [a for op, a in ins if op == "CMD"][-1]
     assert '"cwrr", "serve"' in cmd and '"--viser-port", "8080"' in cmd
+    # the tested versions, not the newest the day it is built
+    pip = [a for op, a in ins if op == "RUN" and a.startswith("pip install")]
+    assert pip and all("-c constraints.txt" in a for a in pip), pip
+
+
+def test_every_dependency_is_pinned_to_a_version_its_range_admits() -> None:
+    """``constraints.txt`` (what ./dev, CI and the image install) pins each requirement of
+    ``pyproject.toml``, the test extras' included, inside the range the project declares."""
+    import tomllib
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    pins: dict[str, str] = {}
+    for line in (ROOT / "constraints.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, _, version = line.partition("==")
+            assert version, f"constraints.txt: {line!r} is not NAME==VERSION"
+            pins[canonicalize_name(name)] = version.strip()
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    reqs = [Requirement(r) for r in project["dependencies"] + project["optional-dependencies"]["test"]]
+    for req in reqs:
+        name = canonicalize_name(req.name)
+        assert name in pins, f"{req.name} is not pinned in constraints.txt"
+        assert req.specifier.contains(pins[name], prereleases=True), (str(req), pins[name])
+    assert pins["numpy"] and pins["viser"] and pins["websockets"]
 
 
 def test_the_install_steps_work_in_a_fresh_venv(tmp_path: Path) -> None:
