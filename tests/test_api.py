@@ -213,8 +213,9 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
 
 
 def test_a_run_whose_metrics_hold_a_null_exports_to_matlab(client: Any, tmp_path: Path) -> None:
-    """A metric a run could not give is stored as null (strict JSON); savemat had refused None (a 500).
-    And a series read while its last row is half written leaves that row out."""
+    """A metric a run could not give is stored as null (strict JSON): the run's page, the history and
+    the MATLAB export had answered 500. And a series read while its last row is half written leaves
+    that row out."""
     from scipy.io import loadmat
 
     from app.engine.sim import LOG_COLUMNS, run_workout
@@ -226,6 +227,10 @@ def test_a_run_whose_metrics_hold_a_null_exports_to_matlab(client: Any, tmp_path
     rid = r.json()["id"]
     client.app.state.store.run_finished(rid, "complete", {"mae": 0.1, "evar": None, "1st-half": 0.2},
                                         {"windows": [[0.0, 0.5], [0.5, 1.0]]})
+    # the run and the history list it: RunInfo had taken metrics as numbers only, and answered 500
+    shown = client.get(f"/api/runs/{rid}")
+    assert shown.status_code == 200 and shown.json()["metrics"]["evar"] is None, shown.text
+    assert client.get("/api/runs").status_code == 200
     mat = client.get(f"/api/runs/{rid}/export", params={"fmt": "mat"})
     assert mat.status_code == 200, mat.text
     d = loadmat(io.BytesIO(mat.content), simplify_cells=True)

@@ -145,3 +145,38 @@ def test_stopping_the_server_cancels_a_running_diagnosis_and_records_it(tmp_path
     finally:
         store.close()
     assert run is not None and run["status"] == "cancelled" and "stopped" in run["result"]["error"]
+
+
+def test_a_running_diagnosis_is_stopped_on_request_and_the_next_one_may_start(tmp_path: Path) -> None:
+    """A diagnosis started by mistake had held the one job slot for minutes, with no way to end it but
+    stopping the server."""
+    app = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))
+    with TestClient(app) as c:
+        rid = c.post("/api/diagnoses", json={"protocol": {"scale": 10.0}}).json()["run_id"]
+        r = c.post(f"/api/diagnoses/{rid}/stop")
+        assert r.status_code == 200, r.text
+        run = r.json()
+        assert run["status"] == "cancelled" and run["result"]["error"].endswith("(stopped on request)"), run
+        assert app.state.jobs.running() == []
+        r = c.post(f"/api/diagnoses/{rid}/stop")
+        assert r.status_code == 409 and r.json()["detail"] == f"diagnosis {rid} is cancelled; there is nothing to stop"
+        # a run left "running" in the store with no job of this server behind it (another station's)
+        store = app.state.store
+        orphan = store.run_started("diagnosis", {}, "")
+        r = c.post(f"/api/diagnoses/{orphan}/stop")
+        assert r.status_code == 409 and "no job of this server runs it" in r.json()["detail"]
+        assert store.run(orphan)["status"] == "running"  # refused: nothing changed
+        other = store.run_started("workout", {}, "")
+        r = c.post(f"/api/diagnoses/{other}/stop")
+        assert r.status_code == 404 and "not a gap diagnosis" in r.json()["detail"]
+        assert c.post("/api/diagnoses/999999/stop").status_code == 404
+        # the slot is free again
+        nxt = c.post("/api/diagnoses", json={"protocol": {"scale": 10.0}})
+        assert nxt.status_code == 202, nxt.text
+    # the server's own stop still says it was the server
+    store = Store(Settings(data_dir=str(tmp_path)).db_url)
+    try:
+        last = store.run(nxt.json()["run_id"])
+    finally:
+        store.close()
+    assert last is not None and last["result"]["error"].endswith("(the server stopped)")

@@ -706,6 +706,17 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     # a run that is not a diagnosis is said to be one, not shown as a failed diagnosis
     page.goto(f"{base}/static/diagnosis.html?report={proto['id']}")
     expect(page.locator("#msg")).to_have_text(f"run {proto['id']} is a diagnosis_protocol run, not a diagnosis")
+    # a long diagnosis started by mistake is stopped from the page, which frees the station for the next
+    page.goto(base + "/static/diagnosis.html")
+    page.fill("#scale", "10")
+    expect(page.locator("#dstop")).to_be_hidden()
+    page.click("#go")
+    expect(page.locator("#msg")).to_contain_text("running", timeout=30_000)
+    expect(page.locator("#dstop")).to_be_visible()
+    page.click("#dstop")
+    expect(page.locator("#msg")).to_contain_text("stopped: ", timeout=30_000)
+    expect(page.locator("#msg")).to_contain_text("(stopped on request)")
+    expect(page.locator("#dstop")).to_be_hidden()
     assert not errors, errors
 
 

@@ -25,14 +25,16 @@ class Jobs:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._threads: dict[str, threading.Thread] = {}
-        self.stop = threading.Event()
+        self._stops: dict[str, threading.Event] = {}  # each job's own: one is stopped without the others
+        self.stop = threading.Event()  # the server is stopping: set with every job's
 
     def start(self, name: str, target: Callable[[threading.Event], None], limit: int = 1) -> None:
         """Run ``target(stop)`` in a thread named ``name``.
 
         Args:
-            name: Thread name (also the key of :meth:`join`).
-            target: The work; it should return soon after its argument is set.
+            name: Thread name (also the key of :meth:`join` and :meth:`cancel`).
+            target: The work; it should return soon after its argument is set
+                (by :meth:`cancel`, or :meth:`shutdown`, which also sets :attr:`stop`).
             limit: Most jobs running at once: a diagnosis takes both cores for
                 minutes, and more of them would only slow each other and the
                 engine down.
@@ -44,14 +46,16 @@ class Jobs:
             why = self._refusal(limit)
             if why:
                 raise JobRefused(why)
-            t = threading.Thread(target=target, args=(self.stop,), name=name, daemon=True)
-            self._threads[name] = t
+            ev = threading.Event()
+            t = threading.Thread(target=target, args=(ev,), name=name, daemon=True)
+            self._threads[name], self._stops[name] = t, ev
             t.start()
 
     def _refusal(self, limit: int) -> str:
         if self.stop.is_set():
             return "the server is stopping; no new job starts"
         self._threads = {n: t for n, t in self._threads.items() if t.is_alive()}
+        self._stops = {n: e for n, e in self._stops.items() if n in self._threads}
         if len(self._threads) >= limit:
             return (f"{', '.join(self._threads)} is still running; start this one when it has finished "
                     "(poll its run)")
@@ -68,6 +72,15 @@ class Jobs:
         with self._lock:
             return [n for n, t in self._threads.items() if t.is_alive()]
 
+    def cancel(self, name: str) -> bool:
+        """Ask one job to stop; False when no job of that name is running."""
+        with self._lock:
+            t = self._threads.get(name)
+            if t is None or not t.is_alive():
+                return False
+            self._stops[name].set()
+            return True
+
     def join(self, name: str, timeout: float | None = None) -> bool:
         """Wait for one job; True when it has ended (or never existed)."""
         with self._lock:
@@ -81,6 +94,8 @@ class Jobs:
         self.stop.set()
         with self._lock:
             threads = list(self._threads.values())
+            for ev in self._stops.values():
+                ev.set()
         for t in threads:
             t.join(timeout)
             if t.is_alive():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import inspect
 import re
+from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -455,7 +456,7 @@ class RunInfo(Documented):
         started: Start [Unix s].
         ended: End [Unix s].
         spec: What was asked for.
-        metrics: The six metrics (workouts).
+        metrics: The six metrics (workouts); a metric the run could not give is null.
         result: Evaluation window or identified parameters.
         person: Pseudonymous person id.
         notes: Notes.
@@ -472,7 +473,7 @@ class RunInfo(Documented):
     started: float
     ended: float | None
     spec: dict[str, Any]
-    metrics: dict[str, float] | None
+    metrics: dict[str, float | None] | None
     result: dict[str, Any] | None
     person: str
     notes: str
@@ -480,6 +481,14 @@ class RunInfo(Documented):
     session_id: int | None = None
     station: str = ""
     has_series: bool
+
+    @classmethod
+    def from_row(cls, r: dict[str, Any]) -> RunInfo:
+        """The run as the store holds it (``Store.run``), with whether its log is on disk."""
+        return cls(**{k: r[k] for k in ("id", "kind", "status", "started", "ended", "metrics", "result", "person",
+                                        "notes", "session_id")}, spec=r["spec"] or {},
+                   notes_edited=r.get("notes_edited"), station=r.get("station") or "",
+                   has_series=bool(r["log_csv"]) and Path(r["log_csv"]).is_file())
 
 
 class Series(Documented):

@@ -20,9 +20,9 @@ from fastapi import APIRouter, HTTPException, Request
 from pydantic import Field
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ
-from app.api.deps import JobsDep, StoreDep
+from app.api.deps import IdPath, JobsDep, StoreDep
 from app.api.jobs import JobRefused
-from app.api.models import Documented
+from app.api.models import Documented, RunInfo
 from app.engine.params import EFFECT_NAMES, ParameterError
 from app.storage import Store
 
@@ -206,7 +206,7 @@ def check_bounds(req: BoundsCheck) -> BoundsChecked:
 
 
 def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, sources: list[Path],
-          stop: threading.Event) -> None:
+          stop: threading.Event, server_stopping: threading.Event) -> None:
     from app.engine.diagnosis.core import Cancelled
     from app.engine.diagnosis.protocol import run_protocol
     from app.engine.diagnosis.run import diagnose_dir
@@ -230,7 +230,8 @@ def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, source
                                                 "e_after": hf["e_after"], "e_floor": hf["e_floor"],
                                                 "unexplained_share": hf["unexplained_share"]}, report)
     except Cancelled as exc:
-        store.run_finished(run_id, "cancelled", None, {"error": f"{exc} (the server stopped)"})
+        why = "the server stopped" if server_stopping.is_set() else "stopped on request"
+        store.run_finished(run_id, "cancelled", None, {"error": f"{exc} ({why})"})
     except Exception as exc:  # the job's failure is its stored result, not a lost thread
         try:
             store.run_finished(run_id, "failed", None, {"error": str(exc), "trace": traceback.format_exc(limit=3)})
@@ -289,8 +290,33 @@ def start(req: DiagnosisRequest, store: StoreDep, jobs: JobsDep, request: Reques
     run_id = store.run_started("diagnosis", spec, "")
     logdir = data_dir / "diagnoses" / f"diagnosis-{run_id}"
     try:
-        jobs.start(f"diagnosis-{run_id}", lambda stop: _work(store, run_id, req, logdir, sources, stop))
+        jobs.start(f"diagnosis-{run_id}", lambda stop: _work(store, run_id, req, logdir, sources, stop, jobs.stop))
     except JobRefused as exc:  # lost a race with another request: the stored run says why
         store.run_finished(run_id, "cancelled", None, {"error": str(exc)})
         raise HTTPException(409, str(exc)) from exc
     return DiagnosisStarted(run_id=run_id)
+
+
+STOP_WAIT_S = 20.0
+"""How long a stop request waits for the diagnosis to record itself cancelled [s]: it checks between
+replays, each a few seconds on a 2-core station."""
+
+
+@router.post("/{run_id}/stop", response_model=RunInfo, dependencies=[ADMIN],
+             responses={404: {"description": "No such run, or it is not a gap diagnosis"},
+                        409: {"description": "The diagnosis is not running (in this server)"}},
+             summary="Stop a running gap diagnosis; answers the run once it is recorded cancelled")
+def stop_diagnosis(run_id: IdPath, store: StoreDep, jobs: JobsDep) -> RunInfo:
+    r = store.run(run_id)
+    if r is None:
+        raise HTTPException(404, f"run {run_id} does not exist")
+    if r["kind"] != "diagnosis":
+        raise HTTPException(404, f"run {run_id} is not a gap diagnosis (its kind: {r['kind']})")
+    name = f"diagnosis-{run_id}"
+    if r["status"] != "running" or not jobs.cancel(name):
+        raise HTTPException(409, f"diagnosis {run_id} is {r['status']}"
+                                 + ("" if r["status"] != "running" else " in the store, but no job of this server "
+                                    "runs it")
+                                 + "; there is nothing to stop")
+    jobs.join(name, STOP_WAIT_S)
+    return RunInfo.from_row(store.run(run_id) or r)

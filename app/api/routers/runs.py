@@ -28,13 +28,6 @@ router = APIRouter(prefix="/api/runs", tags=["runs"], dependencies=[READ], respo
 NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"description": "No such run, or it has no time series"}}
 
 
-def _info(r: dict[str, Any]) -> RunInfo:
-    return RunInfo(**{k: r[k] for k in ("id", "kind", "status", "started", "ended", "metrics", "result", "person",
-                                        "notes", "session_id")}, spec=r["spec"] or {},
-                   notes_edited=r.get("notes_edited"), station=r.get("station") or "",
-                   has_series=bool(r["log_csv"]) and Path(r["log_csv"]).is_file())
-
-
 def _get(store: StoreDep, run_id: int) -> dict[str, Any]:
     r = store.run(run_id)
     if r is None:
@@ -70,12 +63,12 @@ def list_runs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000, descri
               person: Annotated[str | None, Query(max_length=64, pattern=PERSON_PATTERN,
                                                   description="Only this person's runs (pseudonymous id, exact)")]
               = None) -> list[RunInfo]:
-    return [_info(r) for r in store.runs(limit, offset, kind, session_id, person)]
+    return [RunInfo.from_row(r) for r in store.runs(limit, offset, kind, session_id, person)]
 
 
 @router.get("/{run_id}", response_model=RunInfo, responses=NOT_FOUND, summary="One run with metrics and results")
 def run_detail(run_id: IdPath, store: StoreDep) -> RunInfo:
-    return _info(_get(store, run_id))
+    return RunInfo.from_row(_get(store, run_id))
 
 
 @router.get("/{run_id}/report", response_model=DiagnosisReport, response_model_exclude_unset=True,  # as stored
@@ -105,7 +98,7 @@ def diagnosis_report(run_id: IdPath, store: StoreDep) -> DiagnosisReport:
 def edit_notes(run_id: IdPath, body: NotesIn, store: StoreDep) -> RunInfo:
     if not store.set_run_notes(run_id, body.notes):
         raise HTTPException(404, f"run {run_id} does not exist")
-    return _info(_get(store, run_id))
+    return RunInfo.from_row(_get(store, run_id))
 
 
 @router.get("/{run_id}/series", response_model=Series, responses=NOT_FOUND,
@@ -289,4 +282,4 @@ def import_log(req: LogImport, store: StoreDep, request: Request) -> RunInfo:
     duration = float(data[-1, 0] - data[0, 0])
     store.run_finished(run_id, "complete", None, {"rows": int(data.shape[0]), "duration_s": duration,
                                                   "rig": req.meta["rig"], "experiment": req.meta["experiment"]})
-    return _info(_get(store, run_id))
+    return RunInfo.from_row(_get(store, run_id))
