@@ -409,7 +409,19 @@ class Store:
         rows = self._exec("SELECT * FROM sessions WHERE id=?", (session_id,))
         return rows[0] if rows else None
 
-    def sessions(self, person: str | None = None) -> list[dict[str, Any]]:
+    def sessions(self, person: str | None = None, limit: int = 100, offset: int = 0) -> list[dict[str, Any]]:
         """Sessions, newest first (optionally one person's)."""
-        q = "SELECT * FROM sessions" + (" WHERE person=?" if person else "") + " ORDER BY id DESC"
-        return self._exec(q, (person,) if person else ())
+        q = "SELECT * FROM sessions" + (" WHERE person=?" if person else "") + " ORDER BY id DESC LIMIT ? OFFSET ?"
+        return self._exec(q, ((person,) if person else ()) + (limit, offset))
+
+    def session_run_ids(self, session_ids: list[int]) -> dict[int, list[int]]:
+        """Each session's run ids, newest first, in one query: listing sessions had read every run's
+        whole row (a diagnosis's report among them) to give its id."""
+        if not session_ids:
+            return {}
+        out: dict[int, list[int]] = {int(i): [] for i in session_ids}
+        marks = ",".join("?" * len(out))
+        for r in self._exec(f"SELECT id, session_id FROM runs WHERE session_id IN ({marks}) ORDER BY id DESC",
+                            tuple(out)):
+            out[int(r["session_id"])].append(int(r["id"]))
+        return out

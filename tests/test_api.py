@@ -153,6 +153,7 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
     sid = (folder / ".station-id").read_text().strip()
     assert run["station"].startswith(sid + " ") and run["station"].endswith(str(folder))
     assert client.get(f"/api/sessions/{sess['id']}").json()["runs"] == [run_id]
+    assert [x["runs"] for x in client.get("/api/sessions", params={"person": "P-007"}).json()] == [[run_id]]
     m = run["metrics"]
     assert m is not None and set(m) == {"mae", "iae", "itae", "evar", "rmse", "maxae"}, run
     # the same case simulated offline (issue 3) scores MAE 0.13 N·m with PID; a live run on the
@@ -266,6 +267,7 @@ def test_runs_are_listed_by_person_and_kind_and_a_misspelt_filter_is_refused(cli
     r = client.get("/api/runs", params={"person": "P 007; --"})
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "person"]
     assert client.get("/api/sessions", params={"person": "P 007"}).status_code == 422
+    assert client.get("/api/sessions", params={"limit": 0}).status_code == 422
 
 
 def test_session_and_run_notes_are_written_after_the_exercises_and_bad_edits_change_nothing(client: TestClient) -> None:

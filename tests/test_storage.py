@@ -60,6 +60,10 @@ def test_runs_sessions_and_parameter_sets_round_trip(url: str) -> None:
     assert s.param_set(ps) is not None and s.param_set(ps)["payload"] == {"kp_a": 0.7}  # type: ignore[index]
     assert [p["id"] for p in s.param_sets("gains")] == [ps] and s.param_sets("rotary") == []
     assert s.session(sid)["person"] == "P-007" and [x["id"] for x in s.sessions("P-007")] == [sid]  # type: ignore[index]
+    later = s.add_session("P-008")
+    assert [x["id"] for x in s.sessions()] == [later, sid] and [x["id"] for x in s.sessions(limit=1, offset=1)] == [sid]
+    again = s.run_started("workout", {"session_id": sid}, "")
+    assert s.session_run_ids([sid, later]) == {sid: [again, rid], later: []} and s.session_run_ids([]) == {}
     assert s.session(sid)["notes_edited"] is None  # type: ignore[index]
     assert s.set_session_notes(sid, "left arm; tired after SC-2") and not s.set_session_notes(10**9, "x")
     assert s.run(rid)["notes_edited"] is None  # type: ignore[index]

@@ -13,8 +13,13 @@ from app.api.models import PERSON_PATTERN, NotesIn, Session, SessionIn
 router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[READ], responses=AUTH_RESPONSES)
 
 
+def _sessions(store: StoreDep, rows: list[dict[str, Any]]) -> list[Session]:
+    runs = store.session_run_ids([r["id"] for r in rows])
+    return [Session(**r, runs=runs[r["id"]]) for r in rows]
+
+
 def _session(store: StoreDep, row: dict[str, Any]) -> Session:
-    return Session(**row, runs=[r["id"] for r in store.runs(1000, 0, session_id=row["id"])])
+    return _sessions(store, [row])[0]
 
 
 @router.post("", dependencies=[THERAPIST], response_model=Session, status_code=201, summary="Open a session")
@@ -27,8 +32,11 @@ def open_session(body: SessionIn, store: StoreDep) -> Session:
 @router.get("", response_model=list[Session], summary="Sessions, newest first")
 def list_sessions(store: StoreDep, person: Annotated[str | None, Query(
         max_length=64, pattern=PERSON_PATTERN, description="Only this person's sessions (pseudonymous id, exact)")]
-        = None) -> list[Session]:
-    return [_session(store, r) for r in store.sessions(person)]
+        = None,
+        limit: Annotated[int, Query(ge=1, le=1000, description="At most this many sessions")] = 100,
+        offset: Annotated[int, Query(ge=0, le=10**9, description="Skip this many of the newest first")] = 0,
+        ) -> list[Session]:
+    return _sessions(store, store.sessions(person, limit, offset))
 
 
 @router.get("/{session_id}", response_model=Session, responses={404: {"description": "No such session"}},
