@@ -71,6 +71,19 @@ def test_a_log_in_the_fixed_format_round_trips(tmp_path: Path) -> None:
 
 
 
+def test_a_log_a_spreadsheet_wrote_with_semicolons_is_refused_saying_so(tmp_path: Path) -> None:
+    # a spreadsheet set to a locale with decimal commas: "a row is not 1 numbers" had said nothing of it
+    data = _frame()
+    with open(tmp_path / "excel.csv", "w") as fh:
+        fh.write(";".join(LOG_COLUMNS) + "\n")
+        for r in data:
+            fh.write(";".join(f"{v:.6f}".replace(".", ",") for v in r) + "\n")
+    (tmp_path / "excel.json").write_text(json.dumps(META))
+    with pytest.raises(LogFormatError, match="excel: the columns are separated by semicolons; the format wants "
+                                             "commas, and decimal points"):
+        read_log(tmp_path / "excel")
+
+
 def test_a_log_whose_name_holds_dots_reads_by_either_file_its_stem_or_its_folder(tmp_path: Path) -> None:
     # Path.with_suffix had turned "sweep.rep2" into "sweep.csv", a file that is not there
     data = _frame()

@@ -91,6 +91,7 @@ def test_a_header_key_beyond_the_fixed_ones_that_is_nan_reads_back_as_null(clien
     ({"csv": "PA"}, "csv", "looks like Pa"),
     ({"csv": "SLOW"}, "csv", "sample_rate_hz = 200"),
     ({"csv": "RAGGED"}, "csv", "is not 11 numbers"),
+    ({"csv": "SEMICOLONS"}, "csv", "the columns are separated by semicolons; the format wants commas"),
     ({"meta": {k: v for k, v in META.items() if k != "human"}}, "meta", "missing key(s) human"),
     ({"meta": META | {"rig": "pendulum"}}, "meta", "'rotary' or 'linear'"),
 ])
@@ -111,6 +112,8 @@ def test_a_bad_log_is_refused_with_the_problem_and_leaves_nothing(client: TestCl
         change = {"csv": _csv(data)}
     elif csv == "RAGGED":
         change = {"csv": _csv(data) + "1,2,3\n"}
+    elif csv == "SEMICOLONS":  # a spreadsheet set to a locale with decimal commas
+        change = {"csv": _csv(data).replace(",", ";").replace(".", ",")}
     r = client.post("/api/runs", json=body | change)
     assert r.status_code == 422, r.text
     d = r.json()["detail"][0]

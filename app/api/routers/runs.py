@@ -223,10 +223,13 @@ class LogImport(Documented):
 
 def _parse_log(req: LogImport) -> np.ndarray:
     """The checked (n, 11) array of an uploaded log, or a ParameterError naming the problem."""
-    from app.engine.diagnosis.logs import LogFormatError, check_frame
+    from app.engine.diagnosis.logs import LogFormatError, check_frame, header_columns
 
     lines = req.csv.splitlines()
-    header = [h.strip() for h in lines[0].split(",")]
+    try:
+        header = header_columns(req.name, lines[0])
+    except LogFormatError as exc:
+        raise ParameterError(f"csv: {exc}") from None
     rows = [ln for ln in lines[1:] if ln.strip()]
     try:
         data = np.loadtxt(rows, delimiter=",", ndmin=2) if rows else np.zeros((0, len(header)))

@@ -281,6 +281,22 @@ def check_frame(name: str, columns: list[str], data: np.ndarray, meta: dict[str,
                              "theta [rad] and omega [rad/s], CCW positive both")
 
 
+def header_columns(name: str, line: str) -> list[str]:
+    """The column names of a log's header line (blanks around a name are not part of it).
+
+    Raises:
+        LogFormatError: The header is separated by semicolons or tabs, which a spreadsheet set to a
+            locale with decimal commas writes; the error had been "a row is not 1 numbers".
+    """
+    cols = [c.strip() for c in line.split(",")]
+    if len(cols) == 1:
+        for sep, what in ((";", "semicolons"), ("\t", "tabs")):
+            if line.count(sep) >= len(LOG_COLUMNS) - 1:
+                raise LogFormatError(f"{name}: the columns are separated by {what}; the format wants commas, and "
+                                     "decimal points (a spreadsheet set to a locale with decimal commas writes both)")
+    return cols
+
+
 def log_paths(path: str | Path) -> tuple[Path, Path]:
     """The ``NAME.csv`` and ``NAME.json`` of a log given by either file or its stem.
 
@@ -308,8 +324,7 @@ def read_log(path: str | Path) -> Experiment:
     if not isinstance(meta, dict):
         raise LogFormatError(f"{name}.json: must hold an object")
     with open(csv_path, encoding="utf-8-sig") as fh:
-        # names are compared without surrounding blanks ("t, z_a, …" is the same header)
-        header = [c.strip() for c in fh.readline().split(",")]
+        header = header_columns(name, fh.readline())
         try:
             data = np.loadtxt(fh, delimiter=",", ndmin=2)
         except ValueError as exc:
