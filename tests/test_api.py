@@ -45,6 +45,17 @@ def test_state_machine_refuses_illegal_actions_with_409_and_why(client: TestClie
     assert client.post("/api/engine/disconnect").json()["state"] == "disconnected"
 
 
+def test_each_refusal_says_what_its_action_needs_in_that_state() -> None:
+    from app.engine.station import State, TransitionError
+
+    assert str(TransitionError("clear", State.RUNNING)) == \
+        "cannot clear while running: no fault is latched; there is nothing to clear"
+    assert str(TransitionError("start", State.RUNNING)) == "cannot start while running: a run is in progress; " \
+        "stop it first"
+    assert str(TransitionError("stop", State.IDLE)) == "cannot stop while idle: nothing is running"
+    assert str(TransitionError("start", State.IDLE, "why not")) == "cannot start while idle: why not"
+
+
 def test_live_data_outside_an_exercise_has_null_targets_and_float_samples(client: TestClient) -> None:
     client.post("/api/engine/connect")
     t0 = time.monotonic()

@@ -89,15 +89,14 @@ _WHY: dict[State, str] = {
 }
 
 
-_WHY_ACTION: dict[tuple[str, State], str] = {
+_WHY_ACTION: dict[tuple[str, State | None], str] = {
     ("connect", State.IDLE): "the rig is connected already; disconnect first to connect another",
     ("disconnect", State.DISCONNECTED): "the rig is not connected; there is nothing to disconnect",
     ("stop", State.DISCONNECTED): "nothing is running",
-    ("clear", State.DISCONNECTED): "no fault is latched; there is nothing to clear",
-    ("clear", State.IDLE): "no fault is latched; there is nothing to clear",
+    ("clear", None): "no fault is latched; there is nothing to clear",  # in every state but a fault
 }
-"""Where the state's own reason (:data:`_WHY`) would not answer the action: connecting while idle is
-refused because a rig is connected, not because nothing runs."""
+"""Where the state's own reason (:data:`_WHY`) would not answer the action (``None``: in any state):
+connecting while idle is refused because a rig is connected, not because nothing runs."""
 
 
 class TransitionError(RuntimeError):
@@ -112,7 +111,7 @@ class TransitionError(RuntimeError):
         self.action = action
         self.state = state
         super().__init__(f"cannot {action} while {state.value}: "
-                         f"{why or _WHY_ACTION.get((action, state)) or _WHY[state]}")
+                         f"{why or _WHY_ACTION.get((action, state)) or _WHY_ACTION.get((action, None)) or _WHY[state]}")
 
 
 LINEAR_IDENT_RATE_HZ = 200.0

@@ -345,10 +345,10 @@ def read_logdir(directory: str | Path) -> list[Experiment]:
     d = Path(directory)
     if not d.is_dir():
         raise LogFormatError(f"{d}: not a directory")
-    stems = sorted(d.glob("*.csv"))
-    if not stems:
+    csvs = sorted(d.glob("*.csv"))
+    if not csvs:
         raise LogFormatError(f"{d}: no NAME.csv + NAME.json logs")
-    return [read_log(s) for s in stems]
+    return [read_log(c) for c in csvs]
 
 
 def write_log(directory: str | Path, name: str, data: np.ndarray, meta: dict[str, Any]) -> Path:
