@@ -420,8 +420,11 @@ class Store:
         if not session_ids:
             return {}
         out: dict[int, list[int]] = {int(i): [] for i in session_ids}
-        marks = ",".join("?" * len(out))
-        for r in self._exec(f"SELECT id, session_id FROM runs WHERE session_id IN ({marks}) ORDER BY id DESC",
-                            tuple(out)):
-            out[int(r["session_id"])].append(int(r["id"]))
+        ids = list(out)
+        for k in range(0, len(ids), 500):  # an SQLite before 3.32 takes at most 999 parameters
+            part = ids[k:k + 500]
+            marks = ",".join("?" * len(part))
+            for r in self._exec(f"SELECT id, session_id FROM runs WHERE session_id IN ({marks}) ORDER BY id DESC",
+                                tuple(part)):
+                out[int(r["session_id"])].append(int(r["id"]))
         return out

@@ -64,6 +64,10 @@ def test_runs_sessions_and_parameter_sets_round_trip(url: str) -> None:
     assert [x["id"] for x in s.sessions()] == [later, sid] and [x["id"] for x in s.sessions(limit=1, offset=1)] == [sid]
     again = s.run_started("workout", {"session_id": sid}, "")
     assert s.session_run_ids([sid, later]) == {sid: [again, rid], later: []} and s.session_run_ids([]) == {}
+    many = [s.add_session("P-009") for _ in range(600)]  # more than one query's parameters
+    s.run_started("workout", {"session_id": many[-1]}, "")
+    got_many = s.session_run_ids([*many, sid])
+    assert len(got_many) == 601 and got_many[sid] == [again, rid] and len(got_many[many[-1]]) == 1
     assert s.session(sid)["notes_edited"] is None  # type: ignore[index]
     assert s.set_session_notes(sid, "left arm; tired after SC-2") and not s.set_session_notes(10**9, "x")
     assert s.run(rid)["notes_edited"] is None  # type: ignore[index]
