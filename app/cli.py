@@ -316,8 +316,9 @@ def _serve(args: argparse.Namespace) -> int:
         if port and (why := _port_taken(settings.host, port)):
             raise ValueError(f"{flag} {port}: cannot listen on {settings.host}:{port} ({why}); is another "
                              f"cwrr serve running? Stop it or choose another port")
-    from app.storage import DataDirInUse, claim_data_dir, release_data_dir
+    from app.storage import DataDirInUse, check_database, claim_data_dir, release_data_dir
 
+    check_database(settings.db_url)  # a database that cannot be reached, told before compiling too
     # one station per data folder, told before the minute of compiling too
     try:
         claim_data_dir(settings.data_dir)  # held while the server runs; the lifespan's claim nests in it

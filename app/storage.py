@@ -94,6 +94,29 @@ _ADDED = (("runs", "session_id", "{int}"),  # sessions linked to runs
 """Columns added since the first schema: (table, column, type): a store made before gains them on open."""
 
 
+CONNECT_TIMEOUT_S = 10
+"""How long a PostgreSQL server may take to answer a connection [s]: an address nobody answers had
+held the station's start for the operating system's TCP timeout (minutes)."""
+
+
+def check_database(url: str) -> None:
+    """Whether the store at ``url`` can be reached, without opening it as a store (which would mark
+    this station's running runs interrupted before the server's own store could repair their logs).
+
+    Raises:
+        ValueError: Naming what is wrong (the password left out).
+    """
+    if not url.startswith(("postgresql://", "postgres://")):
+        sqlite_path(url)  # a scheme neither supports is named; the folder is the data folder's check
+        return
+    import psycopg
+
+    try:
+        psycopg.connect(url, connect_timeout=CONNECT_TIMEOUT_S).close()
+    except psycopg.Error as exc:
+        raise ValueError(f"cannot reach the database at {_redact(url)}: {str(exc).strip()}") from None
+
+
 def sqlite_path(url: str) -> Path:
     """The file of a ``sqlite:///PATH`` URL.
 
@@ -227,7 +250,7 @@ class Store:
             except ImportError as exc:  # pragma: no cover - psycopg is a project dependency
                 raise ValueError("database_url is PostgreSQL but psycopg is not installed") from exc
             try:
-                self._db: Any = psycopg.connect(url, autocommit=True)
+                self._db: Any = psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S)
             except psycopg.OperationalError as exc:
                 raise ValueError(f"cannot reach the database at {_redact(url)}: {str(exc).strip()}") from None
             ddl = _TABLES.format(**_POSTGRES)
@@ -304,7 +327,7 @@ class Store:
         import psycopg
 
         try:
-            db = psycopg.connect(self._url, autocommit=True)
+            db = psycopg.connect(self._url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S)
         except psycopg.OperationalError:
             return False
         self._db.close()

@@ -67,6 +67,8 @@ def test_loopback_binds_need_no_token(host: str) -> None:
     ({"admin_token": " " + ADMIN}, "surrounding spaces"),
     ({"admin_token": ADMIN, "therapist_token": ADMIN}, "must differ"),
     ({"cors_origins": ["*"]}, "any web page"),
+    # refused before the server compiles for a minute, and the URL (it may hold a password) not echoed
+    ({"database_url": "mysql://lab:s3cret-pw@db/cwrr"}, "database_url: scheme 'mysql' is not supported"),
 ])
 def test_weak_settings_are_refused_without_echoing_the_secret(kw: dict[str, Any], msg: str) -> None:
     with pytest.raises(ValidationError, match=msg) as info:
@@ -83,6 +85,18 @@ def test_cwrr_serve_on_all_interfaces_without_a_token_exits_with_the_reason(
     assert cli_main(["serve", "--host", "0.0.0.0", "--port", "1"]) == 2
     err = capsys.readouterr().err
     assert "without authentication" in err and "CWRR_ADMIN_TOKEN" in err
+
+
+def test_cwrr_serve_with_a_database_it_cannot_reach_exits_with_the_reason_before_compiling(
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """It had compiled for a minute, then failed in the lifespan with a traceback."""
+    from app import cli
+
+    monkeypatch.setenv("CWRR_DATABASE_URL", "postgresql://lab:s3cret@127.0.0.1:1/cwrr")
+    monkeypatch.setattr(cli, "_compile_first", lambda: pytest.fail("compiled before the database was checked"))
+    assert cli_main(["serve", "--port", "1", "--viser-port", "0", "--data-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "cannot reach the database at postgresql://lab:***@127.0.0.1:1/cwrr" in err and "s3cret" not in err
 
 
 def test_cwrr_serve_takes_its_address_from_the_environment_unless_a_flag_names_it(
