@@ -319,6 +319,10 @@ def _serve(args: argparse.Namespace) -> int:
     from app.storage import DataDirInUse, check_database, claim_data_dir, release_data_dir
 
     check_database(settings.db_url)  # a database that cannot be reached, told before compiling too
+    if settings.hardware:  # and a hardware configuration that is missing or wrong
+        from app.engine.hardware.config import load_config
+
+        load_config(settings.hardware)
     # one station per data folder, told before the minute of compiling too
     try:
         claim_data_dir(settings.data_dir)  # held while the server runs; the lifespan's claim nests in it

@@ -87,7 +87,7 @@ def test_cwrr_serve_on_all_interfaces_without_a_token_exits_with_the_reason(
     assert "without authentication" in err and "CWRR_ADMIN_TOKEN" in err
 
 
-def test_cwrr_serve_with_a_database_it_cannot_reach_exits_with_the_reason_before_compiling(
+def test_cwrr_serve_with_a_database_or_rig_configuration_it_cannot_use_exits_before_compiling(
         capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """It had compiled for a minute, then failed in the lifespan with a traceback."""
     from app import cli
@@ -97,6 +97,11 @@ def test_cwrr_serve_with_a_database_it_cannot_reach_exits_with_the_reason_before
     assert cli_main(["serve", "--port", "1", "--viser-port", "0", "--data-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "cannot reach the database at postgresql://lab:***@127.0.0.1:1/cwrr" in err and "s3cret" not in err
+    monkeypatch.delenv("CWRR_DATABASE_URL")
+    (tmp_path / "hw.yaml").write_text("backend: modbus\nrate_hz: 5\n")  # so is a wrong hardware configuration
+    assert cli_main(["serve", "--port", "1", "--viser-port", "0", "--data-dir", str(tmp_path),
+                     "--hardware", str(tmp_path / "hw.yaml")]) == 2
+    assert "rate_hz: Input should be greater than or equal to 10" in capsys.readouterr().err
 
 
 def test_cwrr_serve_takes_its_address_from_the_environment_unless_a_flag_names_it(
