@@ -648,6 +648,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:  # includes ParameterError: the message names the parameter
         print(f"cwrr: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C: a line, not a traceback from wherever the work was waiting
+        print(f"cwrr {args.cmd}: stopped", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -99,3 +99,16 @@ def test_attribute_docs_reads_a_google_style_attributes_section() -> None:
                                    "beta_x": "Second, which goes on over two lines: with a colon.",
                                    "gamma": "Third."}
     assert attribute_docs("No sections.") == {} and attribute_docs(None) == {}
+
+
+def test_ctrl_c_ends_a_command_with_one_line_and_exit_130(
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """A diagnosis stopped with Ctrl-C had ended in a KeyboardInterrupt traceback from a thread pool's wait."""
+    from app import cli
+
+    def interrupted(args: object) -> int:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_diagnose", interrupted)
+    assert cli.main(["diagnose", str(tmp_path)]) == 130
+    assert capsys.readouterr().err == "cwrr diagnose: stopped\n"
