@@ -272,7 +272,7 @@ def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: 
                 log, human, pw = run_schedule(params, s, sd), s.human, s.pw_bar
             meta = {"rig": "rotary", "sample_rate_hz": RATE_HZ, "p_atm_bar": params.p_atm / BAR,
                     "working_pressure_bar": pw, "experiment": kind, "human": human, "repetition": rep + 1,
-                    "protocol": True}
+                    "protocol": True, "scale": scale}
             exps.append(_experiment(name, log, meta))
             if outdir is not None:
                 write_log(outdir, name, log, meta)

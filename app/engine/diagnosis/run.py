@@ -139,7 +139,9 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     # (a single log is split in time: its two parts are logs of their own here)
     sig = {id(e): excites(e) for e in (*exps, *calib, *held)}
     report["experiments"]["excites"] = {e.name: sorted(sig[id(e)]) for e in exps}
-    hidden = unshown(set().union(*(sig[id(e)] for e in calib)), set().union(*(sig[id(e)] for e in held)))
+    ran = {str(e.meta["experiment"]): (float(e.meta["scale"]) if isinstance(e.meta.get("scale"), int | float)
+                                        else None) for e in exps}
+    hidden = unshown(set().union(*(sig[id(e)] for e in calib)), set().union(*(sig[id(e)] for e in held)), ran)
     for c, value in unmeasured.items():
         for effect in family.optional_channels[c]:
             hidden[effect] = {"needs": [f"a measured {c}"], "fitted": False, "experiments": [],
@@ -519,7 +521,8 @@ SHOWN_BY: dict[str, Shows] = {
 as regimes, so that logs from another protocol are weighed too."""
 
 
-def unshown(fitted: set[str], scored: set[str]) -> dict[str, dict[str, Any]]:
+def unshown(fitted: set[str], scored: set[str],
+            ran: dict[str, float | None] | None = None) -> dict[str, dict[str, Any]]:
     """The candidates the held-out logs lack the regimes to show.
 
     A candidate scored on held-out logs with none of its regimes
@@ -531,6 +534,9 @@ def unshown(fitted: set[str], scored: set[str]) -> dict[str, dict[str, Any]]:
     Args:
         fitted: The regimes the calibration logs excite (:func:`excites`).
         scored: The regimes the held-out logs excite.
+        ran: The protocol experiments the logs hold (their ``experiment``), each with the duration
+            factor it ran at where its logs say (``scale``): one that ran and still lacks the regime
+            is named as such, not recommended as if it had not run.
 
     Returns:
         Per such effect: ``needs`` (its regimes), ``fitted`` (whether a
@@ -542,10 +548,18 @@ def unshown(fitted: set[str], scored: set[str]) -> dict[str, dict[str, Any]]:
         if not needs or scored.intersection(needs):
             continue
         fit = bool(fitted.intersection(needs))
+        done = [x for x in exps if ran and x in ran]
+        if done:
+            # run at a small duration factor, fill_shut's shut is under the 2 s heat exchange needs
+            short = [f for x in done if (f := (ran or {}).get(x)) is not None and f < 1.0]
+            hint = (f"the {' and '.join(done)} logs here lack it" +
+                    (f" (run at {min(short):g} × the protocol's length; at full length it shows it)"
+                     if short else ""))
+        else:
+            hint = f"the protocol's {' or '.join(exps)} would"
         out[effect] = {"needs": list(needs), "fitted": fit, "experiments": list(exps),
                        "why": f"{'no held-out log' if fit else 'no log'} has what shows it best "
-                              f"({' or '.join(needs)}), so these logs cannot rule it out; the protocol's "
-                              f"{' or '.join(exps)} would"}
+                              f"({' or '.join(needs)}), so these logs cannot rule it out; {hint}"}
     return out
 
 
