@@ -356,8 +356,13 @@ class Store:
                     strict_json(result) if result is not None else None, run_id))
 
     def runs(self, limit: int = 100, offset: int = 0, kind: str | None = None,
-             session_id: int | None = None, person: str | None = None) -> list[dict[str, Any]]:
-        """Newest first, optionally of one kind, one session or one person (each given filter applies)."""
+             session_id: int | None = None, person: str | None = None,
+             with_result: bool = True) -> list[dict[str, Any]]:
+        """Newest first, optionally of one kind, one session or one person (each given filter applies).
+
+        ``with_result=False`` leaves each run's ``result`` out (None), unread: a gap diagnosis's
+        report alone is tens of kilobytes, and a list of runs rarely needs them.
+        """
         where: list[str] = []
         args: list[Any] = []
         if kind:
@@ -369,7 +374,9 @@ class Store:
         if person is not None:
             where.append("person=?")
             args.append(person)
-        q = "SELECT * FROM runs" + (" WHERE " + " AND ".join(where) if where else "") + \
+        cols = "*" if with_result else "id, kind, status, started, ended, spec, metrics, NULL AS result, log_csv, " \
+            "person, notes, session_id, notes_edited, station"
+        q = f"SELECT {cols} FROM runs" + (" WHERE " + " AND ".join(where) if where else "") + \
             " ORDER BY id DESC LIMIT ? OFFSET ?"
         return [self._run(r) for r in self._exec(q, (*args, limit, offset))]
 

@@ -165,6 +165,9 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
     assert run["station"].startswith(sid + " ") and run["station"].endswith(str(folder))
     assert client.get(f"/api/sessions/{sess['id']}").json()["runs"] == [run_id]
     assert [x["runs"] for x in client.get("/api/sessions", params={"person": "P-007"}).json()] == [[run_id]]
+    # the history's list leaves each result out (a diagnosis's report is tens of kB); the run itself has it
+    (brief,) = client.get("/api/runs", params={"with_result": "false", "person": "P-007"}).json()
+    assert brief["result"] is None and brief | {"result": run["result"]} == run
     m = run["metrics"]
     assert m is not None and set(m) == {"mae", "iae", "itae", "evar", "rmse", "maxae"}, run
     # the same case simulated offline (issue 3) scores MAE 0.13 N·m with PID; a live run on the

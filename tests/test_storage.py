@@ -55,6 +55,8 @@ def test_runs_sessions_and_parameter_sets_round_trip(url: str) -> None:
     assert [r["id"] for r in s.runs()] == [other, rid]
     assert [r["id"] for r in s.runs(kind="workout")] == [rid]
     assert [r["id"] for r in s.runs(session_id=sid)] == [rid]
+    brief = s.runs(kind="workout", with_result=False)[0]  # the list without each run's result, the rest as stored
+    assert brief["result"] is None and {**brief, "result": got["result"]} == s.run(rid)
     assert s.run(10**9) is None
     ps = s.save_params("gains", "trial", {"kp_a": 0.7})
     assert s.param_set(ps) is not None and s.param_set(ps)["payload"] == {"kp_a": 0.7}  # type: ignore[index]

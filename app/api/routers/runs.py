@@ -62,8 +62,12 @@ def list_runs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000, descri
               = None,
               person: Annotated[str | None, Query(max_length=64, pattern=PERSON_PATTERN,
                                                   description="Only this person's runs (pseudonymous id, exact)")]
-              = None) -> list[RunInfo]:
-    return [RunInfo.from_row(r) for r in store.runs(limit, offset, kind, session_id, person)]
+              = None,
+              with_result: Annotated[bool, Query(description=(
+                  "false: each run's result is left out (null; GET /api/runs/{id} has it). A gap "
+                  "diagnosis's report alone is tens of kilobytes; the dashboard's history needs none"))] = True,
+              ) -> list[RunInfo]:
+    return [RunInfo.from_row(r) for r in store.runs(limit, offset, kind, session_id, person, with_result)]
 
 
 @router.get("/{run_id}", response_model=RunInfo, responses=NOT_FOUND, summary="One run with metrics and results")
