@@ -104,7 +104,7 @@ def test_an_unknown_query_parameter_is_refused_naming_it_and_changes_nothing(cli
     r = client.get("/api/runs?limit=5&sesion_id=3")  # misspelt, beside a known one
     assert r.status_code == 422
     assert r.json()["detail"][0]["msg"] == ("unknown query parameter 'sesion_id'; this endpoint takes "
-                                            "kind, limit, offset, person, session_id")
+                                            "kind, limit, offset, person, session_id, with_result")
     assert client.get("/api/runs?limit=5&session_id=3").status_code == 200
     # the query parameters of a route's dependencies count as its own; the dashboard's address takes any
     assert client.get("/api/live?since=0&max_rows=2").status_code == 200
