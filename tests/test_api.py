@@ -45,6 +45,25 @@ def test_state_machine_refuses_illegal_actions_with_409_and_why(client: TestClie
     assert client.post("/api/engine/disconnect").json()["state"] == "disconnected"
 
 
+def test_nan_and_infinity_from_a_script_are_refused_with_422_and_change_nothing(client: TestClient) -> None:
+    """Python's json writes NaN and Infinity (requests.post(json={"target_nm": float("nan")})). The 422
+    echoing them had failed to render (a 500), and a float field without bounds had let NaN through."""
+    client.post("/api/engine/connect")
+    raw = {"content-type": "application/json"}
+    for url, body, loc in (("/api/engine/start", '{"target_nm": NaN}', ["body", "target_nm"]),
+                           ("/api/engine/start", '{"pw_bar": Infinity}', ["body", "pw_bar"]),
+                           ("/api/engine/calibrate", '{"what": "pressure_offsets", "p_atm_bar": NaN}',
+                            ["body", "p_atm_bar"]),
+                           ("/api/forms/rotary", '{"values": {"rom_deg": -Infinity}}', ["body", "values", "rom_deg"]),
+                           ("/api/diagnoses", '{"protocol": {"param_error": NaN}}',
+                            ["body", "protocol", "param_error"])):
+        r = client.post(url, content=body, headers=raw)
+        assert r.status_code == 422, (url, r.text)
+        (err,) = r.json()["detail"]
+        assert err["loc"] == loc and err["msg"] == "Input should be a finite number", err
+    assert client.get("/api/engine").json()["state"] == "idle" and client.get("/api/runs").json() == []
+
+
 def test_each_refusal_says_what_its_action_needs_in_that_state() -> None:
     from app.engine.station import State, TransitionError
 

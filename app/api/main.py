@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import logging
+import math
 import re
 import socket
 import uuid
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from fastapi import Depends, FastAPI, Request
+from fastapi.encoders import jsonable_encoder
 from fastapi.exception_handlers import http_exception_handler
+from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
@@ -79,6 +82,17 @@ def repair_interrupted_logs(store: Store, data_dir: str | Path) -> list[int]:
         except OSError as exc:  # one unreadable log keeps the station from starting no more than before
             log.warning("run %d: its log %s could not be repaired (%s)", run_id, path, exc)
     return repaired
+
+
+def _json_safe(v: Any) -> Any:
+    """``v`` with every non-finite float written as text (``"nan"``, ``"inf"``): JSON has no such number."""
+    if isinstance(v, float) and not math.isfinite(v):
+        return repr(v)
+    if isinstance(v, dict):
+        return {k: _json_safe(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_json_safe(x) for x in v]
+    return v
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -178,6 +192,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        for m in r.methods}  # type: ignore[attr-defined]
             headers["Allow"] = ", ".join(sorted(methods))
         return await http_exception_handler(request, StarletteHTTPException(exc.status_code, exc.detail, headers))
+
+    @app.exception_handler(RequestValidationError)
+    async def unprocessable(request: Request, exc: RequestValidationError) -> JSONResponse:
+        # FastAPI's own handler echoes each refused input, and a NaN or Infinity sent by a script
+        # (Python's json writes them) made that answer itself fail: a 500 instead of the 422
+        return JSONResponse(status_code=422, content={"detail": _json_safe(jsonable_encoder(exc.errors()))})
 
     @app.exception_handler(StoreUnavailable)
     async def store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:

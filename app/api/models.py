@@ -69,7 +69,9 @@ class Documented(BaseModel):
     docstrings have one shape, and twenty lines read it.
     """
 
-    model_config = ConfigDict(json_schema_extra=_describe_fields)
+    # allow_inf_nan: Python's json (a script's requests.post(json=...)) sends NaN and Infinity, which
+    # JSON has not; a float field without bounds had let NaN through to the engine
+    model_config = ConfigDict(json_schema_extra=_describe_fields, allow_inf_nan=False)
 
 
 # who a run is for, as every request that starts one takes it
