@@ -70,7 +70,7 @@ class Documented(BaseModel):
     """
 
     # allow_inf_nan: Python's json (a script's requests.post(json=...)) sends NaN and Infinity, which
-    # JSON has not; a float field without bounds had let NaN through to the engine
+    # JSON has not; refused here, every field says so in the same words, before any check of its own
     model_config = ConfigDict(json_schema_extra=_describe_fields, allow_inf_nan=False)
 
 
