@@ -99,6 +99,22 @@ CONNECT_TIMEOUT_S = 10
 held the station's start for the operating system's TCP timeout (minutes)."""
 
 
+def database_dialect(url: str) -> str:
+    """``"sqlite"`` or ``"postgresql"``: which store a database URL names.
+
+    Raises:
+        ValueError: For any other scheme, naming what is supported (the URL itself is not
+            echoed: it may carry a password).
+    """
+    if url.startswith(("postgresql://", "postgres://")):
+        return "postgresql"
+    if url.startswith("sqlite:///"):
+        return "sqlite"
+    scheme = url.split(":", 1)[0] if ":" in url else "(none)"
+    raise ValueError(f"database_url: scheme {scheme!r} is not supported; use sqlite:///PATH or "
+                     "postgresql://USER:PASSWORD@HOST/DB")
+
+
 def check_database(url: str) -> None:
     """Whether the store at ``url`` can be reached, without opening it as a store (which would mark
     this station's running runs interrupted before the server's own store could repair their logs).
@@ -106,9 +122,8 @@ def check_database(url: str) -> None:
     Raises:
         ValueError: Naming what is wrong (the password left out).
     """
-    if not url.startswith(("postgresql://", "postgres://")):
-        sqlite_path(url)  # a scheme neither supports is named; the folder is the data folder's check
-        return
+    if database_dialect(url) == "sqlite":
+        return  # its folder is the data folder's check
     import psycopg
 
     try:
@@ -123,11 +138,9 @@ def sqlite_path(url: str) -> Path:
     Raises:
         ValueError: For any other scheme, naming what is supported.
     """
-    prefix = "sqlite:///"
-    if not url.startswith(prefix):
-        scheme = url.split(":", 1)[0] if ":" in url else url
-        raise ValueError(f"database_url scheme {scheme!r} is not supported; use sqlite:///PATH or postgresql://…")
-    return Path(url[len(prefix):])
+    if database_dialect(url) != "sqlite":
+        raise ValueError(f"database_url: {_redact(url)} is not a sqlite:///PATH URL")
+    return Path(url[len("sqlite:///"):])
 
 
 def _redact(url: str) -> str:
@@ -243,7 +256,7 @@ class Store:
         self._lock = threading.Lock()
         self._url = url
         self.station = station
-        self.dialect = "postgresql" if url.startswith(("postgresql://", "postgres://")) else "sqlite"
+        self.dialect = database_dialect(url)
         if self.dialect == "postgresql":
             try:
                 import psycopg

@@ -9,6 +9,8 @@ from urllib.parse import urlsplit
 from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from app.storage import database_dialect
+
 MIN_TOKEN_CHARS = 16
 
 
@@ -79,12 +81,9 @@ class Settings(BaseSettings):
         if not tokens and not is_loopback(self.host):
             raise ValueError(f"host = {self.host!r} would open the rig to the network without authentication: "
                              f"set CWRR_ADMIN_TOKEN (and optionally CWRR_THERAPIST_TOKEN), or bind to 127.0.0.1")
-        if self.database_url and not self.database_url.startswith(("sqlite:///", "postgresql://", "postgres://")):
-            # said before the server compiles for a minute (the store had refused it only at start-up);
-            # the URL itself is not echoed: it may carry a password
-            scheme = self.database_url.split(":", 1)[0] if ":" in self.database_url else "(none)"
-            raise ValueError(f"database_url: scheme {scheme!r} is not supported; use sqlite:///PATH or "
-                             "postgresql://USER:PASSWORD@HOST/DB")
+        if self.database_url:
+            # said before the server compiles for a minute (the store had refused it only at start-up)
+            database_dialect(self.database_url)
         if self.viser_public_url:
             check_public_url(self.viser_public_url)
         if "*" in self.cors_origins:

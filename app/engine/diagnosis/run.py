@@ -543,15 +543,16 @@ def unshown(fitted: set[str], scored: set[str],
         calibration log has one), ``experiments`` (the protocol's that have
         them) and ``why`` (one sentence).
     """
+    ran = ran or {}
     out: dict[str, dict[str, Any]] = {}
     for effect, (needs, exps) in SHOWN_BY.items():
         if not needs or scored.intersection(needs):
             continue
         fit = bool(fitted.intersection(needs))
-        done = [x for x in exps if ran and x in ran]
+        done = [x for x in exps if x in ran]
         if done:
             # run at a small duration factor, fill_shut's shut is under the 2 s heat exchange needs
-            short = [f for x in done if (f := (ran or {}).get(x)) is not None and f < 1.0]
+            short = [f for x in done if (f := ran[x]) is not None and f < 1.0]
             hint = (f"the {' and '.join(done)} logs here lack it" +
                     (f" (run at {min(short):g} × the protocol's length; at full length it shows it)"
                      if short else ""))
