@@ -127,6 +127,8 @@ def test_an_unknown_query_parameter_is_refused_naming_it_and_changes_nothing(cli
     assert client.get("/api/runs?limit=5&session_id=3").status_code == 200
     # the query parameters of a route's dependencies count as its own; the dashboard's address takes any
     assert client.get("/api/live?since=0&max_rows=2").status_code == 200
+    r = client.get("/api/live?since=nan")  # said "less than or equal to 1000000000"
+    assert r.status_code == 422 and r.json()["detail"][0]["msg"] == "Input should be a finite number"
     assert client.get("/?tab=runs").status_code == 200
 
 

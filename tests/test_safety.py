@@ -355,6 +355,35 @@ def test_a_run_started_right_after_one_that_ended_far_from_neutral_does_not_yank
         st.close()
 
 
+@pytest.mark.slow
+def test_after_a_run_the_simulated_user_brings_the_handle_back_and_relaxes(tmp_path: Path) -> None:
+    # the vented vane's static friction stops it short of neutral; a user pressing on there had
+    # shown about 1.2 N·m on the idle station's live plot until the next run
+    from app.engine.station import LIVE_COLUMNS, RunSpec, Station
+
+    st = Station(data_dir=tmp_path)
+    try:
+        st.connect()
+        st.start(RunSpec(scenario="SC-1", controller="pid", target_nm=1.2))
+        th, tq = LIVE_COLUMNS.index("theta"), LIVE_COLUMNS.index("torque")
+        deadline = time.monotonic() + 30
+        while (last := st.live.latest()) is None or abs(last[th]) < 0.8:
+            assert time.monotonic() < deadline and st.state.value == "running"
+            time.sleep(0.05)
+        st.stop()
+        theta_end = abs(float(last[th]))
+        # 1 s for the chambers to vent, the move back (π/2 · θ / 0.5 rad/s), the relax, a margin
+        time.sleep(1.0 + math.pi / 2 * theta_end / 0.5 + 1.5)
+        assert st.state.value == "idle"
+        newest = st.live.latest()
+        assert newest is not None
+        rows = st.live.since(float(newest[0]) - 0.5, 100_000)
+        assert abs(float(np.mean(rows[:, th]))) < 0.15 * theta_end  # back near neutral
+        assert abs(float(np.mean(rows[:, tq]))) < 0.1, np.mean(rows[:, tq])  # and nobody pressing
+    finally:
+        st.close()
+
+
 class _FullDisk:
     """A log file on a disk that fills after ``budget`` characters (writes then fail with ENOSPC)."""
 

@@ -55,6 +55,7 @@ MIN_PARTIAL_WINDOW_S = 1.0  # a stopped run is scored only over at least this mu
 logger = logging.getLogger(__name__)
 
 PRESSURISE_S = 1.5  # both chambers brought to P_w before the user engages (as run_workout starts)
+RELAX_AFTER_RUN_S = 0.5  # the simulated user, back at neutral after a run, relaxes this long after the move
 
 
 class State(enum.StrEnum):
@@ -1025,12 +1026,14 @@ class Station:
 
             last = self.live.latest()
             # the simulated user stops where the handle is, waits for the chambers to vent,
-            # then lowers the arm back to neutral (snapping back would yank it)
+            # then lowers the arm back to neutral (snapping back would yank it) and relaxes. Static
+            # friction stops the vented vane short of neutral (≈ 0.06 rad); pressing on there, the
+            # arm's pull had shown 1.2 N·m on the idle station until the next run
             if last is None:
                 set_program(HumanProgram.rest())
             else:
-                set_program(HumanProgram.move(float(last[LIVE_COLUMNS.index("theta")]), 0.0, float(last[0]),
-                                              wait_s=1.0))
+                back = HumanProgram.move(float(last[LIVE_COLUMNS.index("theta")]), 0.0, float(last[0]), wait_s=1.0)
+                set_program(back.let_go(float(back.t[-1]) + RELAX_AFTER_RUN_S))
         metrics: dict[str, Any] | None = None
         result: dict[str, Any] = {"window_s": None}
         if len(job.rows) > 10:

@@ -258,7 +258,7 @@ def calibrate(body: CalibrateRequest, station: StationDep) -> CalibrationResult:
 @router.get("/live", dependencies=[READ], responses=AUTH_RESPONSES, response_model=LiveData,
             summary="Samples newer than `since` from the live buffer")
 def live(station: StationDep,
-         since: float = Query(-1.0, ge=-1.0, le=1e9, description=(
+         since: float = Query(-1.0, ge=-1.0, le=1e9, allow_inf_nan=False, description=(
              "Engine time [s] of the last sample already seen (the previous answer's t_last); -1: the newest "
              "samples")),
          max_rows: int = Query(2000, ge=1, le=15000, description="At most this many samples, the newest")
