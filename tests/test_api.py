@@ -301,7 +301,19 @@ def test_runs_are_listed_by_person_and_kind_and_a_misspelt_filter_is_refused(cli
     assert "'workout'" in r.json()["detail"][0]["msg"] and "'diagnosis'" in r.json()["detail"][0]["msg"]
     r = client.get("/api/runs", params={"person": "P 007; --"})
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "person"]
+    # in words, naming what is wrong, rather than as the pattern (which the schema still shows)
+    assert r.json()["detail"][0]["msg"] == ("'P 007; --' holds a space, ';': a person id is a pseudonym such as "
+                                            "P-007, made of letters, digits, '-', '_' and '.' (no names)")
     assert client.get("/api/sessions", params={"person": "P 007"}).status_code == 422
+    r = client.post("/api/sessions", json={"person": "Jane Doe"})
+    assert r.status_code == 422 and r.json()["detail"][0]["msg"].startswith("'Jane Doe' holds a space: ")
+    r = client.post("/api/engine/start", json={"scenario": "SC-1", "target_nm": 1.0, "person": "Müller"})
+    assert r.status_code == 422 and r.json()["detail"][0]["msg"].startswith("'Müller' holds 'ü': ")
+    schema = client.get("/openapi.json").json()
+    assert schema["components"]["schemas"]["SessionIn"]["properties"]["person"]["pattern"] == r"^[A-Za-z0-9_.-]+$"
+    assert schema["components"]["schemas"]["RunRequest"]["properties"]["person"]["pattern"] == r"^[A-Za-z0-9_.-]*$"
+    (q,) = [q for q in schema["paths"]["/api/runs"]["get"]["parameters"] if q["name"] == "person"]
+    assert q["schema"]["pattern"] == r"^[A-Za-z0-9_.-]*$"  # a pattern constrains only strings, so null passes
     assert client.get("/api/sessions", params={"limit": 0}).status_code == 422
 
 

@@ -7,7 +7,8 @@ import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+from pydantic_core import PydanticCustomError
 
 from app.engine.constants import P_ATM_BAR
 
@@ -76,7 +77,24 @@ class Documented(BaseModel):
 
 # who a run is for, as every request that starts one takes it
 PERSON_PATTERN = r"^[A-Za-z0-9_.-]*$"
-PersonId = Annotated[str, Field(max_length=64, pattern=PERSON_PATTERN)]
+_PERSON_CHARS = re.compile(PERSON_PATTERN)
+
+
+def check_person(v: str | None) -> str | None:
+    """A pseudonymous person id, refused in words a therapist reads rather than as the pattern."""
+    if v is not None and not _PERSON_CHARS.fullmatch(v):
+        bad = "".join(dict.fromkeys(c for c in v if not _PERSON_CHARS.fullmatch(c)))
+        shown = ", ".join("a space" if c == " " else repr(c) for c in bad)
+        # a custom error, not a ValueError, so that the message is not prefixed "Value error, "
+        raise PydanticCustomError("person_id", "{value} holds {chars}: a person id is a pseudonym such as P-007, "
+                                  "made of letters, digits, '-', '_' and '.' (no names)",
+                                  {"value": repr(v), "chars": shown})
+    return v
+
+
+# the pattern stays in the schema for the API's users; the validator words the refusal
+PersonId = Annotated[str, Field(max_length=64, json_schema_extra={"pattern": PERSON_PATTERN}),
+                     AfterValidator(check_person)]
 Notes = Annotated[str, Field(max_length=2000)]
 SessionRef = Annotated[int | None, Field(ge=1, le=2**62, description="therapy session (person taken from it)")]
 
@@ -265,7 +283,8 @@ class SessionIn(Documented):
 
     model_config = ConfigDict(extra="forbid")
 
-    person: str = Field(..., min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
+    person: Annotated[str, Field(min_length=1, max_length=64, json_schema_extra={"pattern": r"^[A-Za-z0-9_.-]+$"}),
+                      AfterValidator(check_person)]
     notes: Notes = ""
 
 
