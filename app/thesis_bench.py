@@ -29,15 +29,22 @@ def _plt() -> Any:
     return plt
 
 
-def radar_figure(title: str, values: dict[str, dict[str, float]]) -> Any:
+def radar_figure(title: str, values: dict[str, dict[str, float]], figsize: tuple[float, float] = (6.4, 6.0),
+                 fontsize: float = 8.0) -> Any:
     """Radar chart of the six metrics per controller (thesis Fig 4.26) as a matplotlib figure.
 
     Each axis is scaled by the largest value among the controllers, so the
     worst controller touches the rim; the raw maxima are in the tick labels.
+
+    Args:
+        title: Figure title (empty: none).
+        values: Metrics per controller, keyed as in :data:`~app.engine.metrics.METRICS`.
+        figsize: Figure size [in].
+        fontsize: Labels' and legend's font size [pt] (the title's is 2 pt larger).
     """
     plt = _plt()
     ang = np.linspace(0.0, 2.0 * np.pi, len(METRICS), endpoint=False)
-    fig = plt.figure(figsize=(6.4, 6.0))
+    fig = plt.figure(figsize=figsize)
     ax = fig.add_subplot(111, polar=True)
     scale = {m: max(v[m] for v in values.values()) or 1.0 for m in METRICS}
     for ctl, met in values.items():
@@ -45,12 +52,18 @@ def radar_figure(title: str, values: dict[str, dict[str, float]]) -> Any:
         ax.plot(np.r_[ang, ang[0]], np.r_[r, r[0]], STYLES[ctl], color=COLORS[ctl], lw=2, label=NAMES[ctl])
         ax.fill(np.r_[ang, ang[0]], np.r_[r, r[0]], color=COLORS[ctl], alpha=0.06)
     ax.set_xticks(ang)
-    ax.set_xticklabels([f"{METRIC_LABELS[m]}\nmax {scale[m]:.3g}" for m in METRICS], fontsize=8)
+    ax.set_xticklabels([f"{METRIC_LABELS[m]}\nmax {scale[m]:.3g}" for m in METRICS], fontsize=fontsize)
     ax.set_ylim(0, 1.05)
     ax.set_yticklabels([])
-    ax.set_title(title, fontsize=10)
-    ax.legend(loc="lower center", bbox_to_anchor=(0.5, -0.18), ncol=3, fontsize=8)
-    fig.tight_layout()
+    if title:
+        ax.set_title(title, fontsize=fontsize + 2)
+    if figsize[0] >= 5.0:
+        ax.legend(loc="lower center", bbox_to_anchor=(0.5, -0.18), ncol=3, fontsize=fontsize)
+        fig.tight_layout()
+    else:  # narrow: the legend in one column below, and room beside the polar axes for the labels
+        fig.subplots_adjust(left=0.24, right=0.76, top=0.86, bottom=0.32)
+        ax.tick_params(axis="x", pad=fontsize)
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=1, fontsize=fontsize, frameon=False)
     return fig
 
 

@@ -547,7 +547,8 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
         st.last_run = {"run_id": 7, "status": "complete", "metrics": {"mae": 0.05, "evar": None}}
         plots.publish()
         assert np.asarray(plots.h_torque.data[0]).size == 2  # still the placeholder built at start-up
-        assert "Run 7" in plots.h_metrics.content and "| evar | – |" in plots.h_metrics.content
+        assert "Run 7" in plots.h_metrics.content and "| e_var [N²·m²] | – |" in plots.h_metrics.content
+        assert "| MAE [N·m] | 0.05 |" in plots.h_metrics.content
         viewer = viser_viewer(port)
         deadline = time.monotonic() + 10
         while not plots._viewers:  # a bare websocket (no 3-D view, no camera) counts as watching

@@ -180,6 +180,30 @@ def test_bench_thesis_writes_the_contract(tmp_path: Path) -> None:
     assert (tmp_path / "tracking_SC-4_FP_1p2.png").stat().st_size > 10_000
 
 
+def test_the_live_plots_radar_keeps_its_labels_and_legend_inside_the_narrow_panel() -> None:
+    # viser's side panel shows it about 300 px wide: the report's 6.4 in figure came out there with
+    # 4 px labels, and at that width a three-column legend ran off both sides
+    from app.api.liveplots import radar_image
+    from app.thesis_bench import _plt, radar_figure
+
+    values = {c: {m: 0.1 + 0.05 * k for k, m in enumerate(mt.METRICS)} for c in ("default", "pid", "fuzzy")}
+    img = radar_image(values)
+    assert img.shape[2] == 3 and img.shape[1] <= 700  # twice its shown width at most
+    plt = _plt()
+    fig = radar_figure("", values, figsize=(3.3, 3.5), fontsize=7.0)
+    try:
+        fig.canvas.draw()
+        box = fig.bbox
+        (ax,) = fig.axes
+        texts = [*ax.get_xticklabels(), *ax.get_legend().get_texts()]
+        assert len(texts) == 9
+        for t in texts:
+            e = t.get_window_extent()
+            assert box.x0 <= e.x0 and e.x1 <= box.x1 and box.y0 <= e.y0 and e.y1 <= box.y1, t.get_text()
+    finally:
+        plt.close(fig)
+
+
 def test_bench_thesis_needs_an_output_dir(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "thesis"]) == 2
     assert "--out" in capsys.readouterr().err
