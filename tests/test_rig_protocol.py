@@ -166,7 +166,7 @@ def test_the_station_runs_the_protocol_and_a_diagnosis_takes_its_runs(client: Te
     # who it is for is checked before anything moves
     for body, words in (({"session_id": 424242}, "session 424242 does not exist"),
                         ({"session_id": sess["id"], "person": "P-012"}, "differs from session"),
-                        ({"person": "Jane Doe"}, "pattern")):
+                        ({"person": "Jane Doe"}, "holds a space")):
         r = client.post("/api/engine/protocol", json={"kinds": ["hold_closed"], "scale": 0.2, **body})
         assert r.status_code == 422 and words in r.text, (body, r.text)
         assert client.get("/api/engine").json()["state"] == "idle"

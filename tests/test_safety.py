@@ -355,6 +355,95 @@ def test_a_run_started_right_after_one_that_ended_far_from_neutral_does_not_yank
         st.close()
 
 
+def test_a_runs_end_lowers_both_chambers_together_from_where_they_are() -> None:
+    # a controlled stop: dropped at once (the slew limit's 200 bar/s), the smaller chamber vented in
+    # 10 ms and the larger in 50, and up to 2.5 N·m swung onto the arm at the end of every exercise
+    from app.engine.control.interaction import InteractionController
+    from app.engine.hardware.base import SAFE_COMMAND
+    from app.engine.station import RELEASE_S, RunJob, RunSpec
+
+    spec = RunSpec(scenario="SC-1", controller="pid", target_nm=1.2)
+    starts: list[float] = []
+    job = RunJob(spec, InteractionController(spec.controller_config()), t_end=5.0, t_d=None,
+                 on_program_start=starts.append, on_disturbance=lambda: None, pressurise_s=0.1)
+    dt, p_atm = 0.005, spec.controller_config().p_atm_bar
+
+    def meas(t: float, p_a: float, p_b: float) -> Measurement:
+        return Measurement(t=t, p_a=p_a, p_b=p_b, p_s=8.0, theta=0.5, omega=0.0, torque=1.2)
+
+    t = 0.0
+    for k in range(200):  # exercising; chamber b toggles 1.4 bar from one period to the next
+        t = k * dt
+        job.step(meas(t, 3.4, 3.0 if k % 2 else 4.4), dt)
+    assert starts and not job.done and job.t_release is None
+    job.request_stop()
+    t += dt
+    first = job.step(meas(t, 3.4, 3.0), dt)  # the sample it starts on is a low one: the average counts
+    assert job.t_release == t and job.ending == "stopped"
+    # near b's mean (3.7), not the sample's 3.0: two low samples in a row leave the average 0.1 under it
+    assert first.z_a == pytest.approx(3.4 - p_atm, abs=0.01) and first.z_b == pytest.approx(3.7 - p_atm, abs=0.15)
+    cmds = [first]
+    while not job.done:
+        t += dt
+        cmds.append(job.step(meas(t, 9.9, 0.1), dt))  # what it reads now no longer matters
+    z = np.array([[c.z_a, c.z_b] for c in cmds])
+    assert all((c.u_a, c.u_b) == (SAFE_COMMAND.u_a, SAFE_COMMAND.u_b) for c in cmds)  # the PRVs vent them
+    assert np.all(np.diff(z, axis=0) <= 1e-12)  # only ever lower
+    ratio = z[:-1, 1] / z[:-1, 0]
+    assert np.ptp(ratio) < 1e-9  # together: the difference falls with the pressures
+    assert (len(cmds) - 1) * dt == pytest.approx(RELEASE_S, abs=1.5 * dt)
+    assert cmds[-1] == SAFE_COMMAND and job.step(meas(t + dt, 3.0, 3.0), dt) == SAFE_COMMAND
+    # a run stopped before its first period has nothing to lower
+    idle = RunJob(spec, InteractionController(spec.controller_config()), 5.0, None, starts.append, lambda: None)
+    idle.request_stop()
+    assert idle.step(meas(0.0, 1.0, 1.0), dt) == SAFE_COMMAND and idle.done
+
+
+@pytest.mark.slow
+def test_stop_and_a_runs_end_leave_the_arm_where_it_is(tmp_path: Path) -> None:
+    # STOP mid-exercise and an exercise run to its end: the handle swung at up to 1.8 rad/s and the
+    # torque on the arm reversed by up to 2.4 N·m when both chambers were dropped at once and the
+    # simulated user let go of their push within one period
+    from app.engine.station import LIVE_COLUMNS, RELEASE_S, RunSpec, Station
+
+    tq, om = (LIVE_COLUMNS.index(c) for c in ("torque", "omega"))
+    st = Station(data_dir=tmp_path)
+    try:
+        st.connect()
+        for scenario, stop_after in (("SC-1", 6.0), ("SC-2", None)):
+            st.start(RunSpec(scenario=scenario, controller="pid", target_nm=1.2))
+            job = st._job
+            assert job is not None
+            if stop_after is not None:
+                time.sleep(stop_after)
+                t0 = time.monotonic()
+                st.stop()  # answers once the run has ended, the release included
+                assert RELEASE_S <= time.monotonic() - t0 < RELEASE_S + 1.0
+                assert st.state.value == "idle" and st.last_run is not None
+                assert st.last_run["status"] == "stopped"
+            else:
+                deadline = time.monotonic() + 30
+                while st.state.value != "idle":
+                    assert time.monotonic() < deadline and st.state.value in ("running", "stopping")
+                    time.sleep(0.02)
+                assert st.last_run is not None and st.last_run["status"] == "complete"
+            time.sleep(1.0)
+            assert job.t_release is not None
+            rows = st.live.since(job.t_release - 0.2, 100_000)
+            before = rows[rows[:, 0] <= job.t_release]
+            after = rows[(rows[:, 0] > job.t_release + 0.02) & (rows[:, 0] < job.t_release + 1.0)]
+            assert len(after) > 150  # the live buffer holds the loop's 200 Hz during a run
+            # measured on 12 ends (SC-1–4, three runs each): ≤ 0.02 rad/s and ≤ 0.15 N·m of reversal; the
+            # code before, 0.0–1.8 rad/s and up to 2.4 N·m
+            assert np.max(np.abs(after[:, om])) < 0.2, (scenario, np.max(np.abs(after[:, om])))
+            # no reversal onto the arm: the torque stays within what it was and nothing
+            lo, hi = min(0.0, float(before[-20:, tq].min())), max(0.0, float(before[-20:, tq].max()))
+            assert lo - 0.4 < after[:, tq].min() and after[:, tq].max() < hi + 0.4, (scenario, lo, hi)
+            time.sleep(6.0)  # the user back at neutral before the next
+    finally:
+        st.close()
+
+
 @pytest.mark.slow
 def test_after_a_run_the_simulated_user_brings_the_handle_back_and_relaxes(tmp_path: Path) -> None:
     # the vented vane's static friction stops it short of neutral; a user pressing on there had

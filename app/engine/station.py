@@ -56,6 +56,12 @@ logger = logging.getLogger(__name__)
 
 PRESSURISE_S = 1.5  # both chambers brought to P_w before the user engages (as run_workout starts)
 RELAX_AFTER_RUN_S = 0.5  # the simulated user, back at neutral after a run, relaxes this long after the move
+RELEASE_S = 0.5
+"""A run's end (its program over, or STOP) lowers both PRV commands to 0 over this long [s]: a
+controlled stop. Dropped at once (the slew limit's 200 bar/s), the smaller chamber vented in 10 ms
+and the larger in 50: on the simulator, 2.6 N·m swung onto the arm and the handle jumped to 1.5
+rad/s at the end of every exercise. E-STOP and faults still vent at once."""
+RELEASE_TAU_S = 0.05  # the release starts from the chambers' pressures averaged over about this long [s]
 
 
 class State(enum.StrEnum):
@@ -327,6 +333,8 @@ class RunJob:
         on_disturbance: Called once at the disturbance time (SC-4's PRV-b drop).
         pressurise_s: Time at P_w before the program starts [s] (longer when the
             user first brings the handle back to neutral).
+        on_release: Called once, with the rig time [s], when the controlled stop
+            begins (tells the simulated user the exercise is over).
     """
 
     spec: RunSpec
@@ -336,11 +344,23 @@ class RunJob:
     on_program_start: Callable[[float], None]
     on_disturbance: Callable[[], None]
     pressurise_s: float = PRESSURISE_S
+    on_release: Callable[[float], None] | None = None
     t0: float | None = None
     t_prog: float | None = None
     disturbed: bool = False
     done: bool = False
     rows: list[tuple[float, float, float]] = field(default_factory=list)
+    ending: str = "complete"
+    t_release: float | None = None
+    release_from: tuple[float, float] = (0.0, 0.0)
+    last: Command | None = None
+    p_mean: tuple[float, float] | None = None  # the chambers' recent pressures [bar abs] (RELEASE_TAU_S)
+
+    def request_stop(self) -> None:
+        """End the run early (STOP): the next period starts the release (:data:`RELEASE_S`). A run whose
+        program is over and whose release has begun stays complete."""
+        if self.t_release is None:
+            self.ending = "stopped"
 
     def step(self, meas: Measurement, dt: float) -> Command:
         """One period of the run."""
@@ -348,21 +368,57 @@ class RunJob:
             self.t0 = meas.t
         if self.done:
             return SAFE_COMMAND
+        if self.p_mean is None:
+            self.p_mean = (meas.p_a, meas.p_b)
+        elif self.t_release is None:
+            k = min(dt / RELEASE_TAU_S, 1.0)
+            self.p_mean = (self.p_mean[0] + k * (meas.p_a - self.p_mean[0]),
+                           self.p_mean[1] + k * (meas.p_b - self.p_mean[1]))
+        if self.t_release is None and self.ending == "stopped":
+            self._begin_release(meas)
+        if self.t_release is not None:
+            return self._release(meas.t)
         if self.t_prog is None:
             if meas.t - self.t0 < self.pressurise_s:
                 z = self.spec.pw_bar - self.controller.config.p_atm_bar  # PRV static map P = z + P_atm (SPEC §3)
-                return Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
+                self.last = Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
+                return self.last
             self.t_prog = meas.t
             self.on_program_start(meas.t)
         tr = meas.t - self.t_prog
         if self.t_d is not None and not self.disturbed and tr >= self.t_d:
             self.disturbed = True
             self.on_disturbance()
-        cmd = self.controller.step(meas, dt)
+        self.last = cmd = self.controller.step(meas, dt)
         self.rows.append((tr, meas.torque, float(self.controller.mode)))
         if tr >= self.t_end + 0.5:
-            self.done = True
+            self._begin_release(meas)
         return cmd
+
+    def _begin_release(self, meas: Measurement) -> None:
+        self.t_release = meas.t
+        if self.on_release is not None:
+            self.on_release(meas.t)
+        if self.last is None:  # stopped before its first period: nothing to lower
+            self.done = True
+        else:
+            # from the chambers' recent pressures, not the last commands: a moving vane holds a chamber
+            # above its PRV's command (the controller's integral has it lower), and lowering from the
+            # command emptied that chamber at once, the jolt the release is for. Averaged: a small
+            # chamber under the thesis's gains can toggle 1.4 bar from one period to the next (SC-4's
+            # hold), and one sample of it set the release 0.7 bar high (PRV static map P = z + P_atm)
+            p_atm = self.controller.config.p_atm_bar
+            pa, pb = self.p_mean if self.p_mean is not None else (meas.p_a, meas.p_b)
+            self.release_from = (max(pa - p_atm, 0.0), max(pb - p_atm, 0.0))
+
+    def _release(self, t: float) -> Command:
+        """Both PRV commands lowered together, the DCVs routing the chambers to them, so the chambers'
+        difference (the torque on the arm) falls in proportion and no chamber empties ahead of the other."""
+        left = 1.0 - (t - self.t_release) / RELEASE_S if self.t_release is not None else 0.0
+        if self.done or left <= 0.0:
+            self.done = True
+            return SAFE_COMMAND
+        return Command(self.release_from[0] * left, self.release_from[1] * left, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
 
     @property
     def fraction(self) -> float:
@@ -582,7 +638,8 @@ class Station:
                 if spec.scenario == "SC-4" and set_dist is not None:
                     set_dist(0.0, settings.dp_b_bar)
 
-            job = RunJob(spec, ctl, t_end, t_d, program_start, disturb, pressurise_s=pressurise_s)
+            job = RunJob(spec, ctl, t_end, t_d, program_start, disturb, pressurise_s=pressurise_s,
+                         on_release=lambda _t: self._user_comes_back())
             name = new_log_name(self.data_dir / "runs", "run")
             meta = {"rig": "rotary", "sample_rate_hz": self.rate_hz, "p_atm_bar": self.p_atm_bar,
                     "working_pressure_bar": spec.pw_bar, "experiment": "workout", "human": True,
@@ -738,7 +795,22 @@ class Station:
                 self._proc.cancel()  # the procedure vents and keeps its data; the watcher finishes it
                 self._state = State.STOPPING
                 return
-            self._finish_run("stopped")
+            job = self._job
+            assert job is not None
+            job.request_stop()
+            self._state = State.STOPPING
+        # the engine lowers the pressures (RELEASE_S) and the watcher then ends the run; waited for here
+        # so that STOP answers with the run ended, as before the release. A loop that no longer steps
+        # the job (it ended, or hangs) has the run ended here instead
+        deadline = time.monotonic() + RELEASE_S + 1.0
+        while time.monotonic() < deadline:
+            with self._lock:
+                if self._job is not job:
+                    return
+            time.sleep(0.01)
+        with self._lock:
+            if self._job is job:
+                self._finish_run("stopped")
 
     def clear(self) -> None:
         """fault → disconnected: acknowledge the fault, drop the backend (the explicit reset)."""
@@ -874,7 +946,8 @@ class Station:
                                "safety": self.safety.status(), "p_atm_bar": self.p_atm_bar}
         if self._job is not None:
             out["progress"] = {"kind": "workout", "fraction": self._job.fraction,
-                               "phase": "pressurising" if self._job.t_prog is None else "exercising"}
+                               "phase": ("releasing" if self._job.t_release is not None
+                                         else "pressurising" if self._job.t_prog is None else "exercising")}
         elif self._proc is not None:
             out["progress"] = {"kind": self._proc_kind, **self._proc.progress.as_dict()}
         return out
@@ -977,7 +1050,7 @@ class Station:
                 self.safety.trip("log_failed", why, self._engine_now)
                 return None
             if self._job is not None and self._job.done:
-                self._finish_run("complete")
+                self._finish_run(self._job.ending)
             elif self._proc is not None and self._proc.finished:
                 self._finish_procedure()
             return None
@@ -1011,6 +1084,37 @@ class Station:
             return True
         return eng.last_measurement.t > f.t + 1.5 * eng.period
 
+    def _user_comes_back(self) -> None:
+        """The simulated user, told the exercise is over, eases off their push over :data:`RELEASE_S`
+        where the handle is (as the controlled stop eases the robot's), waits for the chambers to vent,
+        then lowers the arm back to neutral (snapping back would yank it) and relaxes. A real person
+        needs no cue.
+
+        Letting go of a 1.4 N·m push within one period had thrown the handle at 1.3 rad/s against the
+        robot's torque. Static friction stops the vented vane short of neutral (≈ 0.06 rad); pressing
+        on there, the arm's pull had shown 1.2 N·m on the idle station until the next run.
+        """
+        set_program = getattr(self.backend, "set_program", None)
+        if set_program is None:
+            return
+        from app.engine.human import HumanProgram
+
+        last = self.live.latest()
+        if last is None:
+            set_program(HumanProgram.rest())
+            return
+        t0, theta = float(last[0]), float(last[LIVE_COLUMNS.index("theta")])
+        human = getattr(getattr(self.backend, "params", None), "human", None)
+        push = 0.0
+        if human is not None and human.stiffness > 0.0:
+            # the arm's push as the sensor reads it, held at first: the angle the arm then aims at
+            recent = self.live.since(t0 - 0.02, 100)
+            torque = float(np.mean(recent[:, LIVE_COLUMNS.index("torque")])) if len(recent) else 0.0
+            push = float(np.clip(torque, -human.torque_limit, human.torque_limit)) / human.stiffness
+        back = HumanProgram.move(theta, 0.0, t0, wait_s=max(1.0, RELEASE_S))
+        eased = HumanProgram(np.r_[t0, t0 + RELEASE_S, back.t[1:]], np.r_[theta + push, theta, back.pos[1:]])
+        set_program(eased.let_go(float(eased.t[-1]) + RELAX_AFTER_RUN_S))
+
     def _finish_run(self, status: str) -> None:
         job, log = self._job, self._log
         assert job is not None and self.supervisor is not None
@@ -1020,20 +1124,8 @@ class Station:
         set_dist = getattr(self.backend, "set_disturbance", None)
         if set_dist is not None:
             set_dist(0.0, 0.0)
-        set_program = getattr(self.backend, "set_program", None)
-        if set_program is not None:
-            from app.engine.human import HumanProgram
-
-            last = self.live.latest()
-            # the simulated user stops where the handle is, waits for the chambers to vent,
-            # then lowers the arm back to neutral (snapping back would yank it) and relaxes. Static
-            # friction stops the vented vane short of neutral (≈ 0.06 rad); pressing on there, the
-            # arm's pull had shown 1.2 N·m on the idle station until the next run
-            if last is None:
-                set_program(HumanProgram.rest())
-            else:
-                back = HumanProgram.move(float(last[LIVE_COLUMNS.index("theta")]), 0.0, float(last[0]), wait_s=1.0)
-                set_program(back.let_go(float(back.t[-1]) + RELAX_AFTER_RUN_S))
+        if job.t_release is None:  # ended without the controlled stop (a fault, the server stopping)
+            self._user_comes_back()
         metrics: dict[str, Any] | None = None
         result: dict[str, Any] = {"window_s": None}
         if len(job.rows) > 10:

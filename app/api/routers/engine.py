@@ -231,6 +231,9 @@ def run_protocol(req: ProtocolRunRequest, station: StationDep, store: StoreDep) 
 @router.post("/engine/stop", dependencies=[THERAPIST], response_model=EngineStatus, responses=CONFLICT,
              summary="running/identifying → idle, keeping what was recorded")
 def stop(station: StationDep) -> EngineStatus:
+    """An exercise ends with a controlled stop: both chambers' pressures fall together to atmosphere over
+    0.5 s (state `stopping`), and the answer comes once the run has ended. An identification stops at
+    its next step and vents. The emergency stop vents at once instead."""
     station.stop()
     return EngineStatus(**station.status())
 
