@@ -706,6 +706,12 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#last")).to_contain_text(f"Gap diagnosis {diag_id}: complete")
     page.click("#open-report")
     expect(page.locator("#msg")).to_contain_text(f"diagnosis {diag_id} complete")
+    # the form says what this diagnosis ran on (it had shown the defaults: the simulated protocol)
+    with urllib.request.urlopen(f"{base}/api/runs/{diag_id}", timeout=10) as r:
+        diag_runs = json.loads(r.read())["spec"]["run_ids"]
+    expect(page.locator("#src")).to_have_value("runs")
+    expect(page.locator("#runids")).to_have_value(", ".join(str(i) for i in diag_runs))
+    expect(page.locator("#runs")).to_be_visible()
     expect(page.locator("#verdict")).to_have_text(" + ".join(stored["verdict"]["effects"]) or "no significant effect")
     from app.engine.params import EFFECT_MEANING
 
@@ -726,6 +732,16 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#msg")).to_contain_text("stopped: ", timeout=30_000)
     expect(page.locator("#msg")).to_contain_text("(stopped on request)")
     expect(page.locator("#dstop")).to_be_hidden()
+    # reopened, the stopped one shows the simulated protocol it was asked for, at 10 × its length
+    with urllib.request.urlopen(base + "/api/runs?kind=diagnosis&limit=1", timeout=10) as r:
+        stopped_id = json.loads(r.read())[0]["id"]
+    page.goto(base + "/static/diagnosis.html")
+    expect(page.locator("#scale")).to_have_value("1")
+    page.goto(f"{base}/static/diagnosis.html?report={stopped_id}")
+    expect(page.locator("#msg")).to_contain_text(f"diagnosis {stopped_id} stopped: ")
+    expect(page.locator("#src")).to_have_value("protocol")
+    expect(page.locator("#scale")).to_have_value("10")
+    expect(page.locator("#effects input:checked")).to_have_count(0)
     assert not errors, errors
 
 
