@@ -325,6 +325,21 @@ def test_the_emergency_stop_acts_from_any_state_and_ends_a_run_as_a_fault(tmp_pa
         assert c.post("/api/engine/clear").json()["state"] == "disconnected"
 
 
+def _stop_with_the_handle_out(st: Any, theta_rad: float) -> float:
+    """Connect, start SC-1 and stop it once the handle is ``theta_rad`` out; returns |θ| then [rad]."""
+    from app.engine.station import LIVE_COLUMNS, RunSpec
+
+    th = LIVE_COLUMNS.index("theta")
+    st.connect()
+    st.start(RunSpec(scenario="SC-1", controller="pid", target_nm=1.2))
+    deadline = time.monotonic() + 30
+    while (last := st.live.latest()) is None or abs(last[th]) < theta_rad:
+        assert time.monotonic() < deadline and st.state.value == "running"
+        time.sleep(0.05)
+    st.stop()
+    return abs(float(last[th]))
+
+
 @pytest.mark.slow
 def test_a_run_started_right_after_one_that_ended_far_from_neutral_does_not_yank_the_arm(tmp_path: Path) -> None:
     # found by the torque limit: the simulated user used to jump from where the handle was
@@ -333,14 +348,8 @@ def test_a_run_started_right_after_one_that_ended_far_from_neutral_does_not_yank
 
     st = Station(data_dir=tmp_path)
     try:
-        st.connect()
-        st.start(RunSpec(scenario="SC-1", controller="pid", target_nm=1.2))
         th, tq = LIVE_COLUMNS.index("theta"), LIVE_COLUMNS.index("torque")
-        deadline = time.monotonic() + 30
-        while (last := st.live.latest()) is None or abs(last[th]) < 1.0:
-            assert time.monotonic() < deadline and st.state.value == "running"
-            time.sleep(0.05)
-        st.stop()
+        _stop_with_the_handle_out(st, 1.0)
         newest = st.live.latest()
         assert newest is not None
         t_start = float(newest[0])
@@ -449,19 +458,12 @@ def test_stop_and_a_runs_end_leave_the_arm_where_it_is(tmp_path: Path) -> None:
 def test_after_a_run_the_simulated_user_brings_the_handle_back_and_relaxes(tmp_path: Path) -> None:
     # the vented vane's static friction stops it short of neutral; a user pressing on there had
     # shown about 1.2 N·m on the idle station's live plot until the next run
-    from app.engine.station import LIVE_COLUMNS, RunSpec, Station
+    from app.engine.station import LIVE_COLUMNS, Station
 
     st = Station(data_dir=tmp_path)
     try:
-        st.connect()
-        st.start(RunSpec(scenario="SC-1", controller="pid", target_nm=1.2))
         th, tq = LIVE_COLUMNS.index("theta"), LIVE_COLUMNS.index("torque")
-        deadline = time.monotonic() + 30
-        while (last := st.live.latest()) is None or abs(last[th]) < 0.8:
-            assert time.monotonic() < deadline and st.state.value == "running"
-            time.sleep(0.05)
-        st.stop()
-        theta_end = abs(float(last[th]))
+        theta_end = _stop_with_the_handle_out(st, 0.8)
         # 1 s for the chambers to vent, the move back (π/2 · θ / 0.5 rad/s), the relax, a margin
         time.sleep(1.0 + math.pi / 2 * theta_end / 0.5 + 1.5)
         assert st.state.value == "idle"
