@@ -314,6 +314,13 @@ def test_runs_are_listed_by_person_and_kind_and_a_misspelt_filter_is_refused(cli
     assert schema["components"]["schemas"]["RunRequest"]["properties"]["person"]["pattern"] == r"^[A-Za-z0-9_.-]*$"
     (q,) = [q for q in schema["paths"]["/api/runs"]["get"]["parameters"] if q["name"] == "person"]
     assert q["schema"]["pattern"] == r"^[A-Za-z0-9_.-]*$"  # a pattern constrains only strings, so null passes
+    # an integer's bounds are integers: FastAPI's models had written 2**62 as 4.611686018427388e+18
+    (s,) = [q for q in schema["paths"]["/api/runs"]["get"]["parameters"] if q["name"] == "session_id"]
+    assert s["schema"]["anyOf"][0]["maximum"] == 2**62 and type(s["schema"]["anyOf"][0]["maximum"]) is int
+    magnitude = schema["components"]["schemas"]["ProtocolSource"]["properties"]["magnitude"]
+    assert (magnitude["minimum"], magnitude["maximum"]) == (1, 2) and type(magnitude["maximum"]) is int
+    assert "e+18" not in client.get("/openapi.json").text
+    assert type(schema["components"]["schemas"]["RunRequest"]["properties"]["pw_bar"]["maximum"]) is float
     assert client.get("/api/sessions", params={"limit": 0}).status_code == 422
 
 

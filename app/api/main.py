@@ -252,4 +252,41 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return FileResponse(STATIC / "index.html")
 
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    base_openapi = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            integral_bounds(base_openapi())  # FastAPI's schema models hold every bound as a float
+        return app.openapi_schema  # type: ignore[return-value]
+
+    app.openapi = openapi  # type: ignore[method-assign]
     return app
+
+
+_BOUNDS = ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum", "multipleOf")
+
+
+def integral_bounds(node: Any) -> None:
+    """Give an integer's bounds back as integers, in place, throughout a schema.
+
+    FastAPI's OpenAPI models type them as floats, so an id's ``le=2**62`` reached ``/openapi.json``
+    as ``4.611686018427388e+18`` and a magnitude's ``le=2`` as ``2.0``: a typed client generated from it
+    gets float bounds on integer fields, and schema checkers report the mismatch. A bound beside an
+    ``anyOf`` (an optional query parameter's) counts when every typed branch is an integer or null.
+    """
+    if isinstance(node, list):
+        for item in node:
+            integral_bounds(item)
+        return
+    if not isinstance(node, dict):
+        return
+    # "type" is a schema keyword here, or the name of a property (a dict) in a properties mapping
+    branches = [node, *(b for b in node.get("anyOf", []) if isinstance(b, dict))]
+    types = {t if isinstance(t, str) else "" for t in (b.get("type") for b in branches)}
+    if "integer" in types and types <= {"integer", "null", None}:
+        for key in _BOUNDS:
+            v = node.get(key)
+            if isinstance(v, float) and v.is_integer():
+                node[key] = int(v)
+    for value in node.values():
+        integral_bounds(value)
