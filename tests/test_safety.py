@@ -402,8 +402,12 @@ def test_a_runs_end_lowers_both_chambers_together_from_where_they_are() -> None:
     assert np.ptp(ratio) < 1e-9  # together: the difference falls with the pressures
     assert (len(cmds) - 1) * dt == pytest.approx(RELEASE_S, abs=1.5 * dt)
     assert cmds[-1] == SAFE_COMMAND and job.step(meas(t + dt, 3.0, 3.0), dt) == SAFE_COMMAND
-    # a run stopped before its first period has nothing to lower
-    idle = RunJob(spec, InteractionController(spec.controller_config()), 5.0, None, starts.append, lambda: None)
+    # a run stopped before its first period has nothing to lower; a failing cue does not stop the release
+    def broken(_t: float) -> None:
+        raise RuntimeError("no user")
+
+    idle = RunJob(spec, InteractionController(spec.controller_config()), 5.0, None, starts.append, lambda: None,
+                  on_release=broken)
     idle.request_stop()
     assert idle.step(meas(0.0, 1.0, 1.0), dt) == SAFE_COMMAND and idle.done
 
