@@ -125,16 +125,39 @@ def test_a_cancelled_protocol_keeps_the_finished_logs_and_marks_the_cut_one(tmp_
     backend = SimulatedRig(clock, PlantParams(), seed=1, period=0.005)
     proc = ProtocolProcedure(tmp_path, repetitions=1, scale=0.3, kinds=["prv_steps", "dcv_steps"],
                              set_program=backend.set_program)
+    from app.engine.hardware.base import SAFE_COMMAND
     from app.engine.loop import Engine
+    from app.engine.safety import RELEASE_S
 
-    engine = Engine(backend, proc, clock, rate_hz=200.0, recorder=proc)
+    rows: list[tuple[float, ...]] = []
+
+    class Both:  # what the engine applied each period, and the protocol's own logs
+        def append(self, row: tuple[float, ...]) -> None:
+            rows.append(row)
+            proc.append(row)
+
+    engine = Engine(backend, proc, clock, rate_hz=200.0, recorder=Both())
     backend.activate()
     while proc.progress.done_tests < 1 or clock.now() < 7.5:  # dcv_steps logging from ≈ 6.9 s
         engine.run_for(0.1)
+    p_a, p_b = backend.read().p_a, backend.read().p_b
     proc.cancel()
+    t_c = clock.now()
     engine.run_for(1.0)
     backend.deactivate()
     assert proc.finished and proc.progress.state == "cancelled"
+    # a controlled stop, as an exercise's: both PRVs lowered together from the chambers' pressures
+    # over RELEASE_S, the DCVs routing, then the safe command (they had dropped at once)
+    a = np.array([r[:5] for r in rows if r[0] > t_c - 1e-9])
+    releasing = a[a[:, 0] < a[0, 0] + RELEASE_S - 1e-9]
+    assert abs(len(releasing) - RELEASE_S * 200) <= 1
+    assert releasing[0, 1] == pytest.approx(p_a - proc.p_atm_bar, abs=0.1)
+    assert releasing[0, 2] == pytest.approx(p_b - proc.p_atm_bar, abs=0.1)
+    assert releasing[0, 1] > 1.0 and np.all(np.diff(releasing[:, 1:3], axis=0) <= 1e-12)
+    assert np.ptp(releasing[:-1, 1] / np.maximum(releasing[:-1, 2], 1e-9)) < 1e-6
+    assert np.all(releasing[:, 3:5] == [SAFE_COMMAND.u_a, SAFE_COMMAND.u_b])
+    safe = [SAFE_COMMAND.z_a, SAFE_COMMAND.z_b, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b]
+    assert np.all(a[a[:, 0] >= a[0, 0] + RELEASE_S - 1e-9, 1:5] == safe)
     assert [p.stem for p in proc.finish_logs()] == ["prv_steps-1"]
     cut = json.loads((tmp_path / "dcv_steps-1.json").read_text())
     assert cut["status"] == "incomplete" and cut["rows"] > 0

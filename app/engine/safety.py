@@ -50,6 +50,32 @@ from app.engine.params import ParameterError, check_range
 VENT_COMMAND = Command(0.0, 0.0, 10.0, 0.0)
 """Both DCVs exhaust their chambers directly (u_a > 5 V: a → exhaust; u_b < 5 V: b → exhaust)."""
 
+RELEASE_S = 0.5
+"""A controlled stop lowers both PRV commands to 0 over this long [s] (an exercise's end, STOP, the
+diagnosis protocol's end). Dropped at once (the slew limit's 200 bar/s), the smaller chamber vented
+in 10 ms and the larger in 50: over twelve exercise ends on the simulator the handle swung at up to
+1.8 rad/s and the torque on the arm reversed by up to 2.4 N·m. E-STOP and faults still vent at once."""
+
+
+def release_command(t: float, t0: float, z_from: tuple[float, float]) -> Command:
+    """The controlled stop's command at ``t``: both PRV commands lowered together from ``z_from``.
+
+    The DCVs route the chambers to their PRVs, so the chambers' difference (the torque on the arm)
+    falls in proportion and no chamber empties ahead of the other.
+
+    Args:
+        t: Now [s].
+        t0: When the stop began [s].
+        z_from: PRV-a and PRV-b commands it began from [V] (the chambers' gauge pressures then).
+
+    Returns:
+        The command; :data:`~app.engine.hardware.base.SAFE_COMMAND` from ``t0 + RELEASE_S`` on.
+    """
+    left = 1.0 - (t - t0) / RELEASE_S
+    if not left > 0.0:
+        return SAFE_COMMAND
+    return Command(z_from[0] * left, z_from[1] * left, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
+
 CYLINDER_MAX_BAR = 8.0
 """Rated maximum of the FESTO DRVS-32-270-P [bar gauge] (SPEC §1)."""
 

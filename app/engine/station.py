@@ -45,7 +45,7 @@ from app.engine.hardware.factory import make_factory
 from app.engine.loop import REFREEZE_S, Controller, Engine, Recorder, WallClock, refreeze_heap, settle_heap
 from app.engine.params import ParameterError, PlantParams, SensorParams, check_range
 from app.engine.runlog import RunLogWriter, new_log_name
-from app.engine.safety import SafetyLimits, SafetySupervisor
+from app.engine.safety import RELEASE_S, SafetyLimits, SafetySupervisor, release_command
 from app.engine.scenarios import SCENARIOS, Case, ScenarioSettings, case_controller, case_program, score_case
 
 CONTROL_RATE_HZ = 200.0  # thesis 3.3
@@ -56,11 +56,6 @@ logger = logging.getLogger(__name__)
 
 PRESSURISE_S = 1.5  # both chambers brought to P_w before the user engages (as run_workout starts)
 RELAX_AFTER_RUN_S = 0.5  # the simulated user, back at neutral after a run, relaxes this long after the move
-RELEASE_S = 0.5
-"""A run's end (its program over, or STOP) lowers both PRV commands to 0 over this long [s]: a
-controlled stop. Dropped at once (the slew limit's 200 bar/s), the smaller chamber vented in 10 ms
-and the larger in 50: over twelve exercise ends on the simulator the handle swung at up to 1.8 rad/s
-and the torque on the arm reversed by up to 2.4 N·m. E-STOP and faults still vent at once."""
 RELEASE_TAU_S = 0.05  # the release starts from the chambers' pressures averaged over about this long [s]
 
 
@@ -415,13 +410,11 @@ class RunJob:
             self.release_from = (max(pa - p_atm, 0.0), max(pb - p_atm, 0.0))
 
     def _release(self, t: float) -> Command:
-        """Both PRV commands lowered together, the DCVs routing the chambers to them, so the chambers'
-        difference (the torque on the arm) falls in proportion and no chamber empties ahead of the other."""
-        left = 1.0 - (t - self.t_release) / RELEASE_S if self.t_release is not None else 0.0
-        if self.done or left <= 0.0:
+        cmd = release_command(t, self.t_release, self.release_from) if self.t_release is not None else SAFE_COMMAND
+        if self.done or cmd == SAFE_COMMAND:
             self.done = True
             return SAFE_COMMAND
-        return Command(self.release_from[0] * left, self.release_from[1] * left, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
+        return cmd
 
     @property
     def fraction(self) -> float:

@@ -53,6 +53,7 @@ from app.engine.hardware.base import SAFE_COMMAND, Command
 from app.engine.human import HumanProgram
 from app.engine.ident.procedure import Procedure, Script
 from app.engine.runlog import RunLogWriter
+from app.engine.safety import release_command
 
 KINDS: tuple[str, ...] = tuple(VISIBLE)
 """The protocol's experiments, in the order they run."""
@@ -175,6 +176,19 @@ class ProtocolProcedure(Procedure):
         self.meta = dict(meta or {})
         self._logs: _LogWriter | None = None
         self._logging = False
+        self._release: tuple[float, tuple[float, float]] | None = None
+
+    def vent_command(self) -> Command:
+        """A controlled stop (:data:`~app.engine.safety.RELEASE_S`) when the protocol ends or is stopped.
+
+        A person may hold the handle through the sweeps and push through the isotonic workout; dropped
+        at once, the chambers empty at their own rates and the torque on the arm reverses. From the
+        chambers' pressures at the first vented period (PRV static map P = z + P_atm).
+        """
+        if self._release is None:
+            m = self.meas
+            self._release = (m.t, (max(m.p_a - self.p_atm_bar, 0.0), max(m.p_b - self.p_atm_bar, 0.0)))
+        return release_command(self.meas.t, *self._release)
 
     # ------------------------------------------------------------ the engine's recorder
     @property
