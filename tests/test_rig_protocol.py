@@ -17,6 +17,7 @@ from app.engine.diagnosis.rig_protocol import ProtocolProcedure
 from app.engine.diagnosis.run import diagnose_dir
 from app.engine.diagnosis.suite import MAGNITUDES
 from app.engine.hardware.sim import SimulatedRig
+from app.engine.human import HumanProgram
 from app.engine.ident.procedure import run_procedure
 from app.engine.loop import SimClock
 from app.engine.params import PlantParams
@@ -141,9 +142,15 @@ def test_a_cancelled_protocol_keeps_the_finished_logs_and_marks_the_cut_one(tmp_
     while proc.progress.done_tests < 1 or clock.now() < 7.5:  # dcv_steps logging from ≈ 6.9 s
         engine.run_for(0.1)
     p_a, p_b = backend.read().p_a, backend.read().p_b
+    programs: list[HumanProgram] = []
+    proc.set_program = programs.append  # the simulated user's cue, seen here instead of by the rig
     proc.cancel()
     t_c = clock.now()
     engine.run_for(1.0)
+    # stopped mid-experiment, the user leaves that experiment's program and comes back to neutral
+    (back,) = programs
+    assert back.pos[0] == pytest.approx(backend.read().theta, abs=0.05) and back.pos[-1] == 0.0
+    assert back.t[0] == pytest.approx(t_c, abs=0.01)
     backend.deactivate()
     assert proc.finished and proc.progress.state == "cancelled"
     # a controlled stop, as an exercise's: both PRVs lowered together from the chambers' pressures

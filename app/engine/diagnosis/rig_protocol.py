@@ -188,6 +188,10 @@ class ProtocolProcedure(Procedure):
         if self._release is None:
             m = self.meas
             self._release = (m.t, (max(m.p_a - self.p_atm_bar, 0.0), max(m.p_b - self.p_atm_bar, 0.0)))
+            if self.set_program is not None and self.progress.state != "finished":
+                # stopped mid-experiment: the simulated user leaves that experiment's program (a sweep
+                # had run on to its end) and, once the chambers have vented, brings the handle back
+                self.set_program(HumanProgram.move(m.theta, 0.0, m.t, wait_s=1.0))
         return release_command(self.meas.t, *self._release)
 
     # ------------------------------------------------------------ the engine's recorder
