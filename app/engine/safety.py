@@ -57,16 +57,20 @@ in 10 ms and the larger in 50: over twelve exercise ends on the simulator the ha
 1.8 rad/s and the torque on the arm reversed by up to 2.4 N·m. E-STOP and faults still vent at once."""
 
 
-def release_command(t: float, t0: float, z_from: tuple[float, float]) -> Command:
-    """The controlled stop's command at ``t``: both PRV commands lowered together from ``z_from``.
+def release_command(t: float, t0: float, p_from: tuple[float, float], p_atm_bar: float) -> Command:
+    """The controlled stop's command at ``t``: both PRV commands lowered together from the chambers'.
 
-    The DCVs route the chambers to their PRVs, so the chambers' difference (the torque on the arm)
-    falls in proportion and no chamber empties ahead of the other.
+    Each PRV starts at the command that holds its chamber where it was (PRV static map P = z + P_atm,
+    SPEC §3), not at the controller's last command: a moving vane holds a chamber above its command,
+    and lowering from the command emptied that chamber at once. The DCVs route the chambers to their
+    PRVs, so the chambers' difference (the torque on the arm) falls in proportion and no chamber
+    empties ahead of the other.
 
     Args:
         t: Now [s].
         t0: When the stop began [s].
-        z_from: PRV-a and PRV-b commands it began from [V] (the chambers' gauge pressures then).
+        p_from: Chamber a and b pressures it began from [bar abs].
+        p_atm_bar: The atmosphere the PRVs regulate above [bar abs].
 
     Returns:
         The command; :data:`~app.engine.hardware.base.SAFE_COMMAND` from ``t0 + RELEASE_S`` on.
@@ -74,7 +78,8 @@ def release_command(t: float, t0: float, z_from: tuple[float, float]) -> Command
     left = 1.0 - (t - t0) / RELEASE_S
     if not left > 0.0:
         return SAFE_COMMAND
-    return Command(z_from[0] * left, z_from[1] * left, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
+    return Command(max(p_from[0] - p_atm_bar, 0.0) * left, max(p_from[1] - p_atm_bar, 0.0) * left,
+                   SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
 
 CYLINDER_MAX_BAR = 8.0
 """Rated maximum of the FESTO DRVS-32-270-P [bar gauge] (SPEC §1)."""

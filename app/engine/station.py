@@ -347,7 +347,7 @@ class RunJob:
     rows: list[tuple[float, float, float]] = field(default_factory=list)
     ending: str = "complete"
     t_release: float | None = None
-    release_from: tuple[float, float] = (0.0, 0.0)
+    release_from: tuple[float, float] = (0.0, 0.0)  # the chambers' pressures it starts from [bar abs]
     last: Command | None = None
     p_mean: tuple[float, float] | None = None  # the chambers' recent pressures [bar abs] (RELEASE_TAU_S)
 
@@ -400,17 +400,14 @@ class RunJob:
         if self.last is None:  # stopped before its first period: nothing to lower
             self.done = True
         else:
-            # from the chambers' recent pressures, not the last commands: a moving vane holds a chamber
-            # above its PRV's command (the controller's integral has it lower), and lowering from the
-            # command emptied that chamber at once, the jolt the release is for. Averaged: a small
-            # chamber under the thesis's gains can toggle 1.4 bar from one period to the next (SC-4's
-            # hold), and one sample of it set the release 0.7 bar high (PRV static map P = z + P_atm)
-            p_atm = self.controller.config.p_atm_bar
-            pa, pb = self.p_mean if self.p_mean is not None else (meas.p_a, meas.p_b)
-            self.release_from = (max(pa - p_atm, 0.0), max(pb - p_atm, 0.0))
+            # averaged, not one sample: a small chamber under the thesis's gains can toggle 1.4 bar
+            # from one period to the next (SC-4's hold), and one sample set the release 0.7 bar high
+            assert self.p_mean is not None  # step keeps it from the first period on
+            self.release_from = self.p_mean
 
     def _release(self, t: float) -> Command:
-        cmd = release_command(t, self.t_release, self.release_from) if self.t_release is not None else SAFE_COMMAND
+        assert self.t_release is not None
+        cmd = release_command(t, self.t_release, self.release_from, self.controller.config.p_atm_bar)
         if self.done or cmd == SAFE_COMMAND:
             self.done = True
             return SAFE_COMMAND

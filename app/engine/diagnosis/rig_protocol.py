@@ -183,16 +183,16 @@ class ProtocolProcedure(Procedure):
 
         A person may hold the handle through the sweeps and push through the isotonic workout; dropped
         at once, the chambers empty at their own rates and the torque on the arm reverses. From the
-        chambers' pressures at the first vented period (PRV static map P = z + P_atm).
+        chambers' pressures at the first vented period.
         """
         if self._release is None:
             m = self.meas
-            self._release = (m.t, (max(m.p_a - self.p_atm_bar, 0.0), max(m.p_b - self.p_atm_bar, 0.0)))
+            self._release = (m.t, (m.p_a, m.p_b))
             if self.set_program is not None and self.progress.state != "finished":
                 # stopped mid-experiment: the simulated user leaves that experiment's program (a sweep
                 # had run on to its end) and, once the chambers have vented, brings the handle back
                 self.set_program(HumanProgram.move(m.theta, 0.0, m.t, wait_s=1.0))
-        return release_command(self.meas.t, *self._release)
+        return release_command(self.meas.t, *self._release, self.p_atm_bar)
 
     # ------------------------------------------------------------ the engine's recorder
     @property
