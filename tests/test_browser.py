@@ -370,6 +370,64 @@ def test_a_researcher_tunes_a_pressure_loop_and_exercises_with_the_gains(station
     assert not errors, errors
 
 
+def test_a_friction_identification_shows_each_parameter_with_its_interval_and_both_models(
+        station: tuple[str, str], browser: object) -> None:
+    """Thesis Fig 3.19's results: the parameters per direction, now with their 95 % intervals (one that runs
+    onto a bound of Table 3.4 said to be not pinned down), the tests used, the Coulomb + viscous fit beside
+    the Stribeck one (SPEC §6: show both), on a chart with its speeds and torques marked. The report is
+    the one a station stores (``friction_report``) for a simulated identification, shown as a finished run
+    is: a paced one takes about ten minutes."""
+    import json
+
+    from playwright.sync_api import Browser, expect
+
+    from app.engine.ident.fitting import friction_report
+    from app.engine.ident.runner import identify_rotary_sim
+    from app.storage import strict_json
+
+    assert isinstance(browser, Browser)
+    base, _viser = station
+    res, run = identify_rotary_sim(3.0, 30, 30, seed=0)
+    rep = json.loads(strict_json(friction_report(run.procedure.data, res)))
+    errors: list[object] = []  # the pages' script errors, at either width
+    for width in (1400, 390):
+        page = browser.new_page(viewport={"width": width, "height": 900})
+        page.on("pageerror", errors.append)
+        page.goto(base)
+        page.evaluate("lr => showLast(lr)", {"run_id": 99, "status": "finished", "result": rep})
+        expect(page.locator("#last")).to_contain_text(
+            "Identification 99: finished — 60 breakaway and 60 moving tests run")
+        loose = []
+        for d in ("ccw", "cw"):
+            fit = rep["fits"][d]
+            row = page.locator(f"#ident-result tr[data-dir={d}]")
+            expect(row.locator("td[data-param=fs]")).to_contain_text(" ± ")
+            expect(row.locator("td[data-param=fs]")).to_contain_text("(SD)")
+            for k in ("fs", "fc", "vs", "b"):
+                expect(row.locator(f"td[data-param={k}] small")).to_contain_text("95 %: ")
+                assert (row.locator(f"td[data-param={k}] small.loose").count() == 1) == fit["ci"][k]["at_bound"], (d, k)
+                loose += [k] if fit["ci"][k]["at_bound"] else []
+            note = page.locator(f"#ident-notes li[data-dir={d}]")
+            expect(note).to_contain_text(f"{fit['n_static']} breakaway and {fit['n_dynamic']} moving tests used")
+            rule = {"stribeck": "Stribeck", "coulomb_viscous": "Coulomb + viscous"}[fit["choice"]["thesis_rule"]]
+            expect(note).to_contain_text(f"The thesis GUI's rule would say: {rule}.")
+            expect(note).to_contain_text("Coulomb + viscous alone: T_c ")
+        # whatever this draw leaves loose is said once, under the table
+        expect(page.locator("#ident-loose")).to_have_count(1 if loose else 0)
+        expect(page.locator("#friction-cv")).to_be_visible()
+        chart = page.locator("#c-friction")
+        n_points = len(rep["points"]["static"]) + len(rep["points"]["dynamic"])
+        expect(chart).to_have_attribute("data-points", str(n_points))
+        assert chart.evaluate("c => c.width === Math.round(c.clientWidth)")  # drawn at the size it is shown
+        for attr in ("data-ticks", "data-vticks"):  # both axes marked at round values, zero among them
+            ticks = [float(v) for v in (chart.get_attribute(attr) or "").split()]
+            assert len(ticks) >= 3 and 0.0 in ticks and np.allclose(np.diff(ticks), ticks[1] - ticks[0]), (attr, ticks)
+        # on a phone the table scrolls inside its box; the page itself stays as wide as the screen
+        assert page.evaluate("document.documentElement.scrollWidth") <= width
+        page.close()
+    assert not errors, [str(e) for e in errors]
+
+
 def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser: object,
                                                                          tmp_path: Path) -> None:
     from playwright.sync_api import Browser, expect
@@ -816,7 +874,7 @@ def test_a_slow_server_gets_one_poll_at_a_time_and_the_plot_holds_each_sample_on
         if call("GET", "/api/engine")["state"] == "running":
             call("POST", "/api/engine/stop")
         page.close()
-    assert not errors, errors
+    assert not errors, [str(e) for e in errors]
 
 
 @pytest.mark.parametrize("width", [390, 820])

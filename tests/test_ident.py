@@ -18,7 +18,7 @@ import pytest
 from app.cli import main as cli_main
 from app.engine import tables
 from app.engine.ident import gui_rules as gr
-from app.engine.ident.fitting import fit_friction, runs_test_p, stribeck
+from app.engine.ident.fitting import fit_friction, friction_report, runs_test_p, stribeck
 from app.engine.ident.linear import LinearFrictionProcedure
 from app.engine.ident.procedure import Procedure, Script
 from app.engine.ident.rotary import RotaryFrictionProcedure
@@ -30,6 +30,7 @@ from app.engine.ident.runner import (
     simulate,
 )
 from app.engine.params import DCVParams, ParameterError, PlantParams
+from app.storage import strict_json
 from tests.conftest import REFDATA
 
 # ----------------------------------------------------------------- GUI rules (Appendix 1–2, SPEC §6)
@@ -157,6 +158,19 @@ def test_rotary_identification_single_pressure_recovers_table_4_2() -> None:
     # per-test data kept: N_s static and N_d dynamic tests per direction
     d = run.procedure.data
     assert len(d.static) == 60 and len(d.dynamic) == 60
+    # what the station stores and the dashboard draws: the contract, and each fit in full beside it
+    rep = json.loads(strict_json(friction_report(d, res)))
+    assert rep["parameters"] == json.loads(strict_json(res.contract()))
+    assert rep["tests"] == {"static": 60, "dynamic": 60}
+    for name, f in (("ccw", res.ccw), ("cw", res.cw)):
+        fit = rep["fits"][name]
+        assert (fit["n_static"], fit["n_dynamic"]) == (f.n_static, f.n_dynamic)
+        assert set(fit["ci"]) == {"fs", "fc", "vs", "b"}
+        for k in ("fs", "fc", "b"):  # T_s, T_c and B are pinned down: their intervals hold them, off any bound
+            assert fit["ci"][k]["lo"] <= fit[k] <= fit["ci"][k]["hi"] and not fit["ci"][k]["at_bound"], (name, k)
+        assert fit["choice"]["selected"] in ("stribeck", "coulomb_viscous") and fit["choice"]["thesis_rule"]
+    assert len(rep["points"]["static"]) == res.ccw.n_static + res.cw.n_static
+    assert len(rep["points"]["dynamic"]) == res.ccw.n_dynamic + res.cw.n_dynamic
 
 
 class _Recorder:
@@ -310,10 +324,14 @@ def test_the_motion_after_breakaway_places_f_s_inside_a_pressure_step() -> None:
 
 def test_linear_c1_viscous_coefficient_within_10_percent() -> None:
     """What C1 does meet: B within 10 % both ways (N = 30 for speed)."""
-    res, _ = identify_linear_sim("C1", 30, 30, seed=0, with_ci=False)
+    res, run = identify_linear_sim("C1", 30, 30, seed=0, with_ci=False)
     t = tables.LINEAR_FRICTION["C1"]
     assert res.extension.b == pytest.approx(t["B"][0], rel=0.10)
     assert res.retraction.b == pytest.approx(t["B"][1], rel=0.10)
+    # the report a station stores adds what the linear fit corrects by and how it read F_s
+    rep = json.loads(strict_json(friction_report(run.procedure.data, res)))
+    assert set(rep["fits"]) == {"extension", "retraction"} and rep["moving_mass_kg"] == res.moving_mass_kg > 0
+    assert rep["static_method"] == list(res.static_method)
 
 
 @pytest.mark.slow

@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+from fastapi import Query
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 from pydantic_core import PydanticCustomError
 
@@ -95,6 +96,10 @@ def check_person(v: str | None) -> str | None:
 # the pattern stays in the schema for the API's users; the validator words the refusal
 PersonId = Annotated[str, Field(max_length=64, json_schema_extra={"pattern": PERSON_PATTERN}),
                      AfterValidator(check_person)]
+# the ``person`` filter of the runs' and the sessions' listings: the same id, refused in the same words
+PersonFilter = Annotated[str | None, Query(max_length=64, json_schema_extra={"pattern": PERSON_PATTERN},
+                                           description="Only this person's records (pseudonymous id, exact)"),
+                         AfterValidator(check_person)]
 Notes = Annotated[str, Field(max_length=2000)]
 SessionRef = Annotated[int | None, Field(ge=1, le=2**62, description="therapy session (person taken from it)")]
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -25,6 +24,7 @@ from app.api.models import (
     RunRequest,
     Started,
 )
+from app.engine.ident.fitting import friction_report
 from app.engine.params import ParameterError
 from app.engine.station import CONTROL_RATE_HZ, LIVE_COLUMNS, Rig, RunSpec
 from app.storage import Store
@@ -32,20 +32,6 @@ from app.storage import Store
 router = APIRouter(prefix="/api", tags=["engine"])
 CONFLICT: dict[int | str, dict[str, Any]] = {409: {"description": "Illegal in the current state (says why)"},
                                              **AUTH_RESPONSES}
-
-
-def _friction_result(data: Any, res: Any) -> dict[str, Any]:
-    """Identified parameters per direction plus the test points the dashboard plots (thesis Fig 4.12 style)."""
-    assert res is not None
-
-    def finite(*v: float) -> bool:
-        return all(math.isfinite(x) for x in v)
-
-    static = [[0.0, float(getattr(t, data.STATIC_FIELD))] for t in data.static if finite(getattr(t, data.STATIC_FIELD))]
-    dynamic = [[float(getattr(t, data.SPEED_FIELD)), float(getattr(t, data.FRICTION_FIELD))] for t in data.dynamic
-               if finite(getattr(t, data.SPEED_FIELD), getattr(t, data.FRICTION_FIELD))]
-    return {"parameters": res.contract(), "tests": {"static": len(data.static), "dynamic": len(data.dynamic)},
-            "points": {"static": static, "dynamic": dynamic}}
 
 
 @router.get("/health", response_model=Health, summary="Engine state, loop rate, jitter and overruns")
@@ -202,10 +188,10 @@ def tune_pid(req: PIDTuneRequest, station: StationDep) -> Started:
 
 
 def _identify(station: StationDep, proc: Any, estimator: Any, rig: str, spec: dict[str, Any]) -> Started:
-    """Start a friction identification on ``rig``; the run is fitted (no CIs) when the procedure ends."""
+    """Start a friction identification on ``rig``; the run is fitted, with its intervals, when the procedure ends."""
 
     def fit(p: Any) -> dict[str, Any]:
-        return _friction_result(p.data, estimator(with_ci=False).fit(p.data).params_)
+        return friction_report(p.data, estimator(with_ci=True).fit(p.data).params_)
 
     run_id = station.estimate(proc, "rotary_friction" if rig == "rotary" else "linear_friction", fit, rig, spec)
     return Started(run_id=run_id, status=EngineStatus(**station.status()))

@@ -14,12 +14,12 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response
-from pydantic import AfterValidator, Field, ValidationError
+from pydantic import Field, ValidationError
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import IdPath, StoreDep
 from app.api.diagnosis_report import DiagnosisReport
-from app.api.models import PERSON_PATTERN, Documented, NotesIn, RunInfo, Series, check_person
+from app.api.models import Documented, NotesIn, PersonFilter, RunInfo, Series
 from app.engine.params import ParameterError
 from app.engine.station import RunKind
 from app.storage import StoreUnavailable
@@ -60,10 +60,7 @@ def list_runs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000, descri
                                                                 "refused, not answered with an empty list)")] = None,
               session_id: Annotated[int | None, Query(ge=1, le=2**62, description="Only this therapy session's runs")]
               = None,
-              person: Annotated[str | None, Query(max_length=64, json_schema_extra={"pattern": PERSON_PATTERN},
-                                                  description="Only this person's runs (pseudonymous id, exact)"),
-                                    AfterValidator(check_person)]
-              = None,
+              person: PersonFilter = None,
               with_result: Annotated[bool, Query(description=(
                   "false: each run's result is left out (null; GET /api/runs/{id} has it). A gap "
                   "diagnosis's report alone is tens of kilobytes; the dashboard's history needs none"))] = True,

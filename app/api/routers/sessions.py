@@ -5,11 +5,10 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query
-from pydantic import AfterValidator
 
 from app.api.auth import AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import IdPath, StoreDep
-from app.api.models import PERSON_PATTERN, NotesIn, Session, SessionIn, check_person
+from app.api.models import NotesIn, PersonFilter, Session, SessionIn
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[READ], responses=AUTH_RESPONSES)
 
@@ -31,10 +30,7 @@ def open_session(body: SessionIn, store: StoreDep) -> Session:
 
 
 @router.get("", response_model=list[Session], summary="Sessions, newest first")
-def list_sessions(store: StoreDep, person: Annotated[str | None, Query(
-        max_length=64, json_schema_extra={"pattern": PERSON_PATTERN},
-        description="Only this person's sessions (pseudonymous id, exact)"), AfterValidator(check_person)]
-        = None,
+def list_sessions(store: StoreDep, person: PersonFilter = None,
         limit: Annotated[int, Query(ge=1, le=1000, description="At most this many sessions")] = 100,
         offset: Annotated[int, Query(ge=0, le=10**9, description="Skip this many of the newest first")] = 0,
         ) -> list[Session]:

@@ -475,3 +475,36 @@ class FrictionData(Generic[InputsT, StaticT, DynamicT]):
         return {"inputs": asdict(self.inputs), "p_atm_bar": self.p_atm_bar,  # type: ignore[call-overload]
                 "seed": self.seed, "static": [asdict(s) for s in self.static],  # type: ignore[call-overload]
                 "dynamic": [asdict(d) for d in self.dynamic]}  # type: ignore[call-overload]
+
+
+def friction_report(data: FrictionData[Any, Any, Any], result: Any) -> dict[str, Any]:
+    """What a finished friction identification reports: the station's run result, which the dashboard draws.
+
+    Args:
+        data: The procedure's tests.
+        result: Its fit (a ``RotaryFrictionResult`` or ``LinearFrictionResult``).
+
+    Returns:
+        ``parameters``: per direction, the thesis's symbols (the ``cwrr identify --json`` contract);
+        ``fits``: each direction's :class:`FrictionFit` in full: the 95 % intervals (one that runs
+        onto a bound of Tables 3.4/3.6 says these tests cannot pin that parameter down), the valid
+        test counts, the fit's RMS, the speeds covered, and the Stribeck against the Coulomb +
+        viscous fit (SPEC §6: show both); ``tests``: experiments run, static and dynamic;
+        ``points``: (speed, friction) of every valid test, a static one at speed 0. A linear fit
+        adds ``moving_mass_kg`` and ``static_method``.
+    """
+
+    def finite(*v: float) -> bool:
+        return all(math.isfinite(x) for x in v)
+
+    contract = result.contract()
+    static = [[0.0, float(getattr(t, data.STATIC_FIELD))] for t in data.static if finite(getattr(t, data.STATIC_FIELD))]
+    dynamic = [[float(getattr(t, data.SPEED_FIELD)), float(getattr(t, data.FRICTION_FIELD))] for t in data.dynamic
+               if finite(getattr(t, data.SPEED_FIELD), getattr(t, data.FRICTION_FIELD))]
+    out: dict[str, Any] = {"parameters": contract, "fits": {d: getattr(result, d).as_dict() for d in contract},
+                           "tests": {"static": len(data.static), "dynamic": len(data.dynamic)},
+                           "points": {"static": static, "dynamic": dynamic}}
+    for extra in ("moving_mass_kg", "static_method"):
+        if hasattr(result, extra):
+            out[extra] = getattr(result, extra)
+    return out
