@@ -261,8 +261,11 @@ def test_a_run_whose_metrics_hold_a_null_exports_to_matlab(client: Any, tmp_path
     r = client.post("/api/runs", json={"name": "short", "meta": res.meta, "csv": text})
     assert r.status_code == 201, r.text
     rid = r.json()["id"]
-    client.app.state.store.run_finished(rid, "complete", {"mae": 0.1, "evar": None, "1st-half": 0.2},
-                                        {"windows": [[0.0, 0.5], [0.5, 1.0]]})
+    # a result as an identification's holds one: parameters per direction, test points, names with spaces
+    result: dict[str, Any] = {"windows": [[0.0, 0.5], [0.5, 1.0]], "parameters": {"ccw": {"Ts": 1.3, "ws": None}},
+              "points": {"dynamic": [[4.5, 1.2], [5.0, 1.3], [-4.8, -1.3]], "static": []},
+              "thesis Eq 3.26": {"kp": 0.55}, "steps": [{"u": 4.6, "ok": True}, {"u": 5.4, "ok": False}]}
+    client.app.state.store.run_finished(rid, "complete", {"mae": 0.1, "evar": None, "1st-half": 0.2}, result)
     # the run and the history list it: RunInfo had taken metrics as numbers only, and answered 500
     shown = client.get(f"/api/runs/{rid}")
     assert shown.status_code == 200 and shown.json()["metrics"]["evar"] is None, shown.text
@@ -272,6 +275,17 @@ def test_a_run_whose_metrics_hold_a_null_exports_to_matlab(client: Any, tmp_path
     d = loadmat(io.BytesIO(mat.content), simplify_cells=True)
     assert d["metric_mae"] == pytest.approx(0.1) and np.size(d["metric_evar"]) == 0  # MATLAB's []
     assert d["metric_1st_half"] == pytest.approx(0.2) and d["meta"]["rig"] == "rotary"
+    # and what the run found, as the struct result (it had been left out: an identification's .mat held
+    # its log but not the parameters it identified); rows of numbers become a matrix, one row each
+    res_m = d["result"]
+    assert res_m["parameters"]["ccw"]["Ts"] == pytest.approx(1.3) and np.size(res_m["parameters"]["ccw"]["ws"]) == 0
+    np.testing.assert_allclose(res_m["points"]["dynamic"], result["points"]["dynamic"])
+    np.testing.assert_allclose(res_m["windows"], [[0.0, 0.5], [0.5, 1.0]])
+    assert res_m["thesis_Eq_3_26"]["kp"] == pytest.approx(0.55) and res_m["steps"][1]["u"] == pytest.approx(5.4)
+    import pyarrow.parquet as pq
+
+    pqt = pq.read_table(io.BytesIO(client.get(f"/api/runs/{rid}/export", params={"fmt": "parquet"}).content))
+    assert json.loads(pqt.schema.metadata[b"result"]) == json.loads(json.dumps(result))
     # read while its writer is mid-row, cut just after a comma: that row is not one yet (it had been a 500)
     rows = client.get(f"/api/runs/{rid}/series").json()["rows_total"]
     path = Path(client.app.state.store.run(rid)["log_csv"])

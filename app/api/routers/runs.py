@@ -137,6 +137,10 @@ def _matlab_name(k: str) -> str:
     return (name if name[:1].isalpha() else f"x{name}")[:63]
 
 
+def _numbers(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool)
+
+
 def _for_matlab(v: Any) -> Any:
     """A JSON value as ``scipy.io.savemat`` writes it: objects become structs (their keys
     :func:`_matlab_name`), null an empty matrix (savemat refuses None)."""
@@ -145,7 +149,11 @@ def _for_matlab(v: Any) -> Any:
     if isinstance(v, dict):
         return {_matlab_name(str(k)): _for_matlab(x) for k, x in v.items()}
     if isinstance(v, list):
-        if v and all(isinstance(x, int | float) and not isinstance(x, bool) for x in v):
+        if v and all(_numbers(x) for x in v):
+            return np.asarray(v, dtype=float)
+        # rows of numbers, all as long (an identification's test points): a matrix, one row each
+        if v and all(isinstance(x, list) and x and _numbers(x[0]) for x in v) \
+                and all(len(x) == len(v[0]) and all(_numbers(y) for y in x) for x in v):
             return np.asarray(v, dtype=float)
         cells = np.empty(len(v), dtype=object)
         cells[:] = [_for_matlab(x) for x in v]
@@ -159,7 +167,7 @@ FILES: dict[int | str, dict[str, Any]] = {
 
 
 def _parquet(r: dict[str, Any]) -> bytes:
-    """The series as one Parquet table; spec and metrics ride along as schema metadata."""
+    """The series as one Parquet table; spec, metrics and result ride along as schema metadata."""
     import json
 
     import pyarrow as pa
@@ -168,7 +176,7 @@ def _parquet(r: dict[str, Any]) -> bytes:
     cols, data = _load(r)
     meta = {"run_id": str(r["id"]), "kind": r["kind"], "status": r["status"],
             "spec": json.dumps(r["spec"] or {}), "metrics": json.dumps(r["metrics"] or {}),
-            "log": json.dumps(_meta(r)), "units": UNITS}
+            "result": json.dumps(r["result"] or {}), "log": json.dumps(_meta(r)), "units": UNITS}
     table = pa.table({c: data[:, i] for i, c in enumerate(cols)}).replace_schema_metadata(meta)
     buf = pa.BufferOutputStream()
     pq.write_table(table, buf, compression="zstd")
@@ -178,9 +186,10 @@ def _parquet(r: dict[str, Any]) -> bytes:
 @router.get("/{run_id}/export", responses=FILES,
             summary="Download the time series as CSV, Parquet or MATLAB .mat")
 def export(run_id: IdPath, store: StoreDep, fmt: Annotated[Literal["csv", "parquet", "mat"], Query(
-        description="csv (the log format), parquet (spec, metrics and the log's JSON header in its metadata) or "
-                    "mat (MATLAB: one variable per column, metric_<name> per metric, the log's JSON header as "
-                    "the struct meta, run_id and units)")] = "csv"
+        description="csv (the log format), parquet (spec, metrics, result and the log's JSON header in its "
+                    "metadata) or mat (MATLAB: one variable per column, metric_<name> per metric, the log's JSON "
+                    "header as the struct meta, the run's result (identified parameters, scored window, ...) as "
+                    "the struct result, run_id and units)")] = "csv"
         ) -> Response:
     r = _get(store, run_id)
     if fmt == "csv":
@@ -198,6 +207,8 @@ def export(run_id: IdPath, store: StoreDep, fmt: Annotated[Literal["csv", "parqu
         mdict[_matlab_name(f"metric_{k}")] = _for_matlab(v)
     # what a MATLAB user needs beside the columns: the sample rate, the atmosphere, the scenario, the target
     mdict["meta"] = _for_matlab(_meta(r))
+    if r["result"]:  # what the run found: an identification's parameters, an exercise's scored window
+        mdict["result"] = _for_matlab(r["result"])
     mdict["run_id"] = int(r["id"])
     mdict["units"] = UNITS
     savemat(buf, mdict, do_compression=True)
