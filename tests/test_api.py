@@ -669,6 +669,9 @@ def test_the_pid_autotuner_runs_on_the_rotary_rig_and_reports_beside_the_thesis(
     assert set(res["gains_fields"]) == {"kp_b", "ki_b", "kd_b"}
     assert res["thesis"]["thesis Eq 3.26"] == {"kp": 0.55, "ki": 2.042, "kd": 0.0107}  # Eq 3.26
     assert len(res["frf"]["w_rad_s"]) == 5 and min(res["frf"]["coherence"]) > 0.9
+    # each gain set's open loop over the measured band, for the dashboard's Bode chart
+    assert set(res["loops"]) == {"Tuned here", *res["thesis"]}
+    assert all(len(lp["w_rad_s"]) == len(lp["phase_deg"]) == 80 for lp in res["loops"].values())
     # the experiment's periods are its run's log, one the gap diagnosis reads
     from app.engine.diagnosis.logs import read_log
 

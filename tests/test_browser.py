@@ -329,6 +329,11 @@ def test_a_researcher_tunes_a_pressure_loop_and_exercises_with_the_gains(station
     expect(page.locator("#state")).to_have_text("identifying")
     expect(page.locator("#pid-result")).to_be_visible(timeout=90000)
     expect(page.locator("#pid-result")).to_contain_text("thesis Eq 3.26")
+    # the Bode chart: the plant measured at the five test frequencies, each gain set's loop over them
+    expect(page.locator("#c-bode")).to_be_visible()
+    expect(page.locator("#c-bode")).to_have_attribute("data-points", "5")
+    expect(page.locator("#c-bode")).to_have_attribute("data-lines", "3")
+    expect(page.locator("#bode-legend")).to_contain_text("plant G measured (coherence ")
     page.evaluate("window.scrollTo(0, document.getElementById('last').getBoundingClientRect().top + scrollY - 120)")
     page.screenshot(path=str(SHOTS / "5-pid-tuning.png"))
     page.click("#save-gains")
@@ -389,10 +394,14 @@ def test_a_friction_identification_shows_each_parameter_with_its_interval_and_bo
     base, _viser = station
     res, run = identify_rotary_sim(3.0, 30, 30, seed=0)
     rep = json.loads(strict_json(friction_report(run.procedure.data, res)))
-    errors: list[object] = []  # the pages' script errors, at either width
+    errors: list[str] = []  # the pages' script errors, at either width
+
+    def seen(e: object) -> None:
+        errors.append(str(e))
+
     for width in (1400, 390):
         page = browser.new_page(viewport={"width": width, "height": 900})
-        page.on("pageerror", errors.append)
+        page.on("pageerror", seen)
         page.goto(base)
         page.evaluate("lr => showLast(lr)", {"run_id": 99, "status": "finished", "result": rep})
         expect(page.locator("#last")).to_contain_text(
@@ -425,7 +434,7 @@ def test_a_friction_identification_shows_each_parameter_with_its_interval_and_bo
         # on a phone the table scrolls inside its box; the page itself stays as wide as the screen
         assert page.evaluate("document.documentElement.scrollWidth") <= width
         page.close()
-    assert not errors, [str(e) for e in errors]
+    assert not errors, errors
 
 
 def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser: object,
@@ -874,7 +883,7 @@ def test_a_slow_server_gets_one_poll_at_a_time_and_the_plot_holds_each_sample_on
         if call("GET", "/api/engine")["state"] == "running":
             call("POST", "/api/engine/stop")
         page.close()
-    assert not errors, [str(e) for e in errors]
+    assert not errors, errors
 
 
 @pytest.mark.parametrize("width", [390, 820])

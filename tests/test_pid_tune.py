@@ -15,6 +15,7 @@ from app.engine.ident.pid_tune import (
     autotune_sim,
     estimate_frf,
     loop_margins,
+    loop_response,
     tune_pid,
 )
 from app.engine.params import ParameterError
@@ -65,6 +66,26 @@ def test_tuner_meets_bandwidth_and_phase_margin_when_feasible() -> None:
     _, pm, _, wc = control.margin(c * g)
     assert wc == pytest.approx(2.0, rel=0.03)
     assert pm == pytest.approx(60.0, abs=2.0)
+
+
+def test_the_loop_drawn_is_the_loop_the_margins_are_read_from() -> None:
+    """The tuning's Bode chart (``loop_response``): python-control's C·G at the band's ends, where the
+    estimate is the measured point, and crossing 0 dB where ``loop_margins`` says, with its margin."""
+    g = _fopdt()
+    frf = FrequencyResponse(W, control.frequency_response(g, W).complex, np.ones(W.size))
+    tun = tune_pid(frf, 2.0, 60.0, 100.0)
+    drawn = loop_response(frf, tun.kp, tun.ki, tun.kd, 100.0, points=400)
+    w, gain, phase = (np.asarray(drawn[k]) for k in ("w_rad_s", "gain_db", "phase_deg"))
+    assert w[0] == pytest.approx(W.min()) and w[-1] == pytest.approx(W.max()) and np.all(np.diff(w) > 0)
+    s = control.tf("s")
+    exact = control.frequency_response((tun.kp + tun.ki / s + tun.kd * s / (1 + s / 100.0)) * g, W[[0, -1]]).complex
+    np.testing.assert_allclose(gain[[0, -1]], 20 * np.log10(np.abs(exact)), atol=1e-6)
+    np.testing.assert_allclose(np.exp(1j * np.radians(phase[[0, -1]])), exact / np.abs(exact), atol=1e-6)
+    i = int(np.nonzero((gain[:-1] >= 0.0) & (gain[1:] < 0.0))[0][0])
+    wc = math.exp(np.interp(0.0, [gain[i + 1], gain[i]], np.log([w[i + 1], w[i]])))
+    wc_m, pm_m = loop_margins(frf, tun.kp, tun.ki, tun.kd, 100.0)
+    assert wc == pytest.approx(wc_m, rel=0.01)
+    assert 180.0 + np.interp(math.log(wc), np.log(w), phase) == pytest.approx(pm_m, abs=0.5)
 
 
 def test_tuner_puts_kp_on_zero_when_the_plant_barely_lags() -> None:

@@ -177,7 +177,9 @@ def tune_pid(req: PIDTuneRequest, station: StationDep) -> Started:
         margins = {k: dict(zip(("crossover_rad_s", "phase_margin_deg"), pt.loop_margins(frf, *g, spec.n_filter),
                                strict=True)) for k, g in thesis.items()}
         side = spec.side
+        gains = {"Tuned here": (tuning.kp, tuning.ki, tuning.kd), **thesis}
         return {"parameters": asdict(tuning), "frf": frf.as_dict(),
+                "loops": {k: pt.loop_response(frf, *g, spec.n_filter) for k, g in gains.items()},
                 "gains_fields": {f"kp_{side}": tuning.kp, f"ki_{side}": tuning.ki, f"kd_{side}": tuning.kd},
                 "thesis": {k: dict(zip(("kp", "ki", "kd"), g, strict=True)) for k, g in thesis.items()},
                 "thesis_margins": margins}

@@ -214,6 +214,30 @@ def loop_margins(frf: FrequencyResponse, kp: float, ki: float, kd: float, n: flo
     return wc, 180.0 + math.degrees(math.atan2(lc.imag, lc.real))
 
 
+def loop_response(frf: FrequencyResponse, kp: float, ki: float, kd: float, n: float,
+                  points: int = 80) -> dict[str, list[float]]:
+    """The open loop C·G over the estimated band, as a Bode chart draws it.
+
+    Args:
+        frf: Estimated plant response.
+        kp: K_p [-].
+        ki: K_i [1/s].
+        kd: K_d [s].
+        n: Derivative filter coefficient [1/s].
+        points: Log-spaced frequencies between the lowest and the highest test frequency.
+
+    Returns:
+        ``w_rad_s`` [rad/s], ``gain_db`` [dB] (−inf where C is zero) and ``phase_deg`` [deg,
+        unwrapped]: what :func:`loop_margins` reads its crossover and margin from.
+    """
+    grid = np.exp(np.linspace(math.log(frf.w.min()), math.log(frf.w.max()), points))
+    lg = np.array([frf.at(float(x)) for x in grid]) * pidf(grid, kp, ki, kd, n)
+    with np.errstate(divide="ignore"):
+        gain = 20.0 * np.log10(np.abs(lg))
+    phase = np.degrees(np.unwrap(np.angle(lg)))
+    return {"w_rad_s": grid.tolist(), "gain_db": gain.tolist(), "phase_deg": phase.tolist()}
+
+
 def tune_pid(frf: FrequencyResponse, wc: float = 2.0, pm_deg: float = 60.0, n: float = 100.0,
              kd_weight: float = 1e-3) -> PIDTuning:
     """PIDF gains ≥ 0 that put L's crossover at ``wc`` with phase margin ``pm_deg`` (module doc, step 3).
