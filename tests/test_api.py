@@ -636,6 +636,9 @@ def test_the_cpr_rig_maps_the_valve_and_fits_the_flow_model(client: TestClient) 
     assert run["kind"] == "dcv_flow" and res["tests"] == {"cpr": 2, "validation": 1}
     # C3 extended: bore area × stroke + dead volume (params.LinearCylinder)
     assert res["inputs"]["chamber_volume_cm3"] == pytest.approx(245.3, abs=0.5)
+    # the map the dashboard draws (Figures 4.1–4.2): a per signal and supply pressure
+    fill = res["parameters"]["filling"]
+    assert fill["u_cpr"] == [4.6, 5.4] and fill["ps_cpr"] == [5.0] and np.shape(fill["a"]) == (2, 1)
     rows = res["parameters"]["filling"]["table_4_1"]
     # (signals away from 5 V: inside the null zone a test takes a minute or more of rig time)
     assert [row["u"] for row in rows] == [4.6, 5.4]

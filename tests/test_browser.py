@@ -437,6 +437,42 @@ def test_a_friction_identification_shows_each_parameter_with_its_interval_and_bo
     assert not errors, errors
 
 
+def test_a_valve_map_is_drawn_as_the_thesis_figures_draw_it(station: tuple[str, str], browser: object) -> None:
+    """A valve identification's result (the shape ``tests/test_api.py``'s CPR run checks) shows its Table 4.1
+    rows and the critical-pressure-ratio map a(u) per supply pressure, filling and exhausting (Figures
+    4.1–4.2), where it had shown the tables alone."""
+    from playwright.sync_api import Browser, expect
+
+    assert isinstance(browser, Browser)
+    base, _viser = station
+    row = {"u": 5.0, "a": 0.97, "eps": 0.61, "g": 0.0079, "r2": 0.99}
+    maps = {"filling": {"u_cpr": [4.2, 4.6, 5.0, 5.4], "ps_cpr": [3.0, 5.0],
+                        "a": [[1.0, 1.0], [1.0, 1.0], [0.95, 0.97], [None, 0.33]], "table_4_1": [row]},
+            "exhausting": {"u_cpr": [4.6, 5.0, 5.4, 5.8], "ps_cpr": [5.0],
+                           "a": [[0.2], [0.21], [0.61], [1.0]], "table_4_1": [row]}}
+    result = {"parameters": maps, "tests": {"cpr": 12, "validation": 0}}
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    errors: list[str] = []
+
+    def seen(e: object) -> None:
+        errors.append(str(e))
+
+    page.on("pageerror", seen)
+    page.goto(base)
+    page.evaluate("lr => showLast(lr)", {"run_id": 98, "status": "finished", "result": result})
+    expect(page.locator("#last .dcv-table")).to_have_count(2)
+    chart = page.locator("#c-cpr")
+    expect(chart).to_be_visible()
+    expect(chart).to_have_attribute("data-points", "11")  # every a the map holds; the missing one is left out
+    expect(page.locator("#cpr-legend")).to_contain_text("P_s = 3.00 bar")
+    expect(page.locator("#cpr-legend")).to_contain_text("P_s = 5.00 bar")
+    # another kind of result takes the chart away again
+    page.evaluate("lr => showLast(lr)", {"run_id": 97, "status": "stopped", "result": {}})
+    expect(chart).to_be_hidden()
+    assert not errors, errors
+    page.close()
+
+
 def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser: object,
                                                                          tmp_path: Path) -> None:
     from playwright.sync_api import Browser, expect
