@@ -431,6 +431,8 @@ def test_a_friction_identification_shows_each_parameter_with_its_interval_and_bo
         for attr in ("data-ticks", "data-vticks"):  # both axes marked at round values, zero among them
             ticks = [float(v) for v in (chart.get_attribute(attr) or "").split()]
             assert len(ticks) >= 3 and 0.0 in ticks and np.allclose(np.diff(ticks), ticks[1] - ticks[0]), (attr, ticks)
+        if width == 1400:
+            page.locator("xpath=//div[@id='last']/..").screenshot(path=str(SHOTS / "7-friction-identification.png"))
         # on a phone the table scrolls inside its box; the page itself stays as wide as the screen
         assert page.evaluate("document.documentElement.scrollWidth") <= width
         page.close()
