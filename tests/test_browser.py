@@ -91,6 +91,9 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     expect(page.locator("#state")).to_have_text("disconnected")
     for action in ("start", "stop", "disconnect"):  # buttons follow the state machine
         expect(page.locator(f"[data-action={action}]").first).to_be_disabled()
+    # a screen reader finds the live charts as pictures with a name, not as unnamed canvases
+    expect(page.get_by_role("img", name="Live chart: interaction torque")).to_be_visible()
+    expect(page.get_by_role("img", name="Live chart: chamber pressures")).to_be_visible()
 
     # guided entry (thesis Appendix 1): an impossible range of motion is refused with the GUI's words
     rom = page.locator("#f-rom_deg")
