@@ -21,12 +21,59 @@ if TYPE_CHECKING:
     from app.api.settings import Settings
 
 
+# the scenarios' and controllers' names as app.engine.scenarios holds them (tests/test_cli_api.py), written
+# out so that `cwrr --help` and the server's start do not import the simulator to build the parser
+SIM_SCENARIOS = ("SC-1", "SC-2", "SC-3", "SC-4")
+SIM_CONTROLLERS = ("default", "pid", "fuzzy")
+
+
+def _sim_scenario(args: argparse.Namespace) -> int:
+    """One of the thesis's scenarios (SPEC §5) with one controller, scored as ``bench thesis`` scores it."""
+    from app.engine.params import check_range
+    from app.engine.scenarios import Case, ScenarioSettings, run_case
+
+    if args.duration is not None or args.direction is not None:
+        raise ValueError("--duration and --direction do not go with --scenario: the scenario sets its length, "
+                         "and the sign of --target the direction (positive: pronation, FP)")
+    target = 1.2 if args.target is None else args.target
+    if target == 0.0:
+        raise ValueError("--target 0 N·m: an isotonic exercise needs a torque to work against")
+    check_range("target", abs(target), 0.0, 8.0, lo_open=True, unit="N·m")
+    on = args.scenario != "SC-1"  # SPEC §5: PDRA and TDRA on in SC-2 to SC-4
+    case = Case(args.scenario, target, on, on)
+    w0 = time.perf_counter()
+    run = run_case(case, args.controller or "pid", seed=args.seed, settings=ScenarioSettings(pw_bar=args.pw))
+    wall = time.perf_counter() - w0
+    out: dict[str, object] = {**run.record(), "working_pressure_bar": args.pw, "seed": args.seed,
+                              "sim_s": float(run.result.column("t")[-1]), "wall_s": wall}
+    if args.log_dir:
+        from app.engine.runlog import RunLogWriter
+
+        w = RunLogWriter(args.log_dir, args.name, {**run.result.meta, **run.record()})
+        w.append_many(run.result.log)
+        w.close()
+        out["log"] = str(w.csv_path)
+    if args.json:
+        print(strict_json(out))
+    else:
+        for k_, v in out.items():
+            print(f"{k_:28s} {v}")
+    return 0
+
+
 def _sim(args: argparse.Namespace) -> int:
     from app.engine.human import isotonic
     from app.engine.params import PlantParams, check_working_pressure
     from app.engine.sim import run_workout
 
     check_working_pressure(args.pw)
+    if args.scenario:
+        return _sim_scenario(args)
+    if args.controller is not None or args.target is not None:
+        raise ValueError("--controller and --target go with --scenario (the default workout runs the Default "
+                         "controller at 1.2 N·m)")
+    args.duration = 60.0 if args.duration is None else args.duration
+    args.direction = args.direction or "FP"
     if not (0.0 < args.duration <= 3600.0):
         raise ValueError(f"--duration {args.duration} is outside its allowed range (0, 3600] s")
     direction = -1 if args.direction == "FS" else 1
@@ -542,10 +589,17 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``cwrr`` command line: one subcommand per job, each calling its function (``fn``)."""
     ap = argparse.ArgumentParser(prog="cwrr", description="CWRR lab station")
     sub = ap.add_subparsers(dest="cmd", required=True)
-    s = sub.add_parser("sim", help="simulate a default isotonic workout faster than real time")
-    s.add_argument("--duration", type=float, default=60.0, help="simulated time [s]")
+    s = sub.add_parser("sim", help="simulate a default isotonic workout, or one of the thesis's scenarios with one "
+                                   "controller, faster than real time")
+    s.add_argument("--scenario", choices=SIM_SCENARIOS, default="",
+                   help="run this scenario (SPEC §5) and print its six metrics; without it, a default workout")
+    s.add_argument("--controller", choices=SIM_CONTROLLERS, default=None, help="with --scenario (default: pid)")
+    s.add_argument("--target", type=float, default=None,
+                   help="with --scenario: target torque [N·m], positive pronation (FP), negative supination "
+                        "(FS); default 1.2")
+    s.add_argument("--duration", type=float, default=None, help="default workout: simulated time [s] (60)")
     s.add_argument("--pw", type=float, default=3.0, help="working pressure [bar abs]")
-    s.add_argument("--direction", choices=("FP", "FS"), default="FP")
+    s.add_argument("--direction", choices=("FP", "FS"), default=None, help="default workout: direction (FP)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--log-dir", default="", help="write the run log (CSV + JSON) here")
     s.add_argument("--name", default="workout")

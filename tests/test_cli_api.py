@@ -44,6 +44,35 @@ def test_sim_writes_run_log(tmp_path: Path) -> None:
     assert meta["rig"] == "rotary" and meta["human"] is True
 
 
+def test_sim_runs_one_scenario_with_one_controller_as_the_thesis_bench_scores_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`cwrr sim --scenario`: one of SPEC §5's cases in a fraction of a second, its metrics those of
+    ``bench thesis``'s run of the same case; a case outside the twelve (SC-1 at −0.9 N·m) runs too."""
+    from app.cli import SIM_CONTROLLERS, SIM_SCENARIOS, main
+    from app.engine.diagnosis.logs import read_log
+    from app.engine.scenarios import CONTROLLERS, SCENARIOS, Case, run_case
+
+    assert SIM_SCENARIOS == SCENARIOS and SIM_CONTROLLERS == CONTROLLERS  # the parser's copies
+    assert main(["sim", "--scenario", "SC-4", "--controller", "fuzzy", "--json", "--log-dir", str(tmp_path),
+                 "--name", "sc4"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    ref = run_case(Case("SC-4", 1.2, True, True), "fuzzy", seed=0)
+    assert out["metrics"] == pytest.approx(ref.metrics) and out["t_d_s"] == ref.t_d
+    assert (out["pdra"], out["tdra"], out["direction"]) == (True, True, "FP")
+    log = read_log(tmp_path / "sc4")  # the run's log, in the format a diagnosis reads
+    assert log.meta["scenario"] == "SC-4" and log.meta["controller"] == "fuzzy"
+    assert main(["sim", "--scenario", "SC-1", "--target", "-0.9", "--controller", "default", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert (out["pdra"], out["direction"]) == (False, "FS") and 0.0 < out["metrics"]["mae"] < 0.9
+    # what does not go together is refused, naming why
+    for argv, words in ((["--scenario", "SC-2", "--duration", "5"], "the scenario sets its length"),
+                        (["--target", "1.0"], "--controller and --target go with --scenario"),
+                        (["--scenario", "SC-2", "--target", "9"], "target = 9.0 N·m is outside"),
+                        (["--scenario", "SC-2", "--target", "0"], "needs a torque to work against")):
+        assert main(["sim", *argv]) == 2, argv
+        assert words in capsys.readouterr().err, argv
+
+
 def test_health_and_openapi_with_lifespan(tmp_path: Path) -> None:
     app = create_app(Settings(rate_hz=200.0, data_dir=str(tmp_path), viser_port=0))
     with TestClient(app) as c:

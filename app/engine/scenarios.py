@@ -166,7 +166,10 @@ class CaseRun:
 def _case_seed(seed: int, case: Case) -> int:
     # common random numbers across controllers; independent of ablation flags
     base = main_cases()
-    idx = next(i for i, c in enumerate(base) if c.scenario == case.scenario and c.target == case.target)
+    idx = next((i for i, c in enumerate(base) if c.scenario == case.scenario and c.target == case.target), None)
+    if idx is None:  # a case outside SPEC §5's twelve (`cwrr sim --scenario SC-3 --target -0.9`): its own stream
+        key = [seed, SCENARIOS.index(case.scenario), int(case.target > 0), int(round(abs(case.target) * 1e6))]
+        return int(np.random.SeedSequence(key).generate_state(1)[0])
     return int(np.random.SeedSequence([seed, idx]).generate_state(1)[0])
 
 
