@@ -110,6 +110,15 @@ def test_every_field_of_the_api_says_what_it_is_in_the_openapi_schema(tmp_path: 
     assert "[N·m]" in target["description"] and target["maximum"] == 3.0  # the docstring's, the limits kept
 
 
+def test_every_operation_says_what_it_does_beyond_its_summary(tmp_path: Path) -> None:
+    """A researcher reading /docs sees what each call does, not only its one-line summary: every
+    operation's handler carries a description (20 of 40 had none)."""
+    app = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))
+    bare = [f"{m.upper()} {p}" for p, ops in app.openapi()["paths"].items() for m, op in ops.items()
+            if not op.get("summary") or len(op.get("description", "")) < 40]
+    assert not bare, bare
+
+
 def test_attribute_docs_reads_a_google_style_attributes_section() -> None:
     doc = """A model.
 

@@ -229,6 +229,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.get("/api/viser", tags=["engine"], response_model=ViserInfo, summary="Where the live plots are served",
              dependencies=[READ])
     def viser_url(request: Request) -> ViserInfo:
+        """The live plots' address for this browser (null when viser is off); on a station with tokens a
+        signed link that expires (`expires_s`)."""
         if getattr(request.app.state, "plots", None) is None:
             return ViserInfo(url=None, expires_s=None)
         host = request.url.hostname or settings.host
@@ -243,6 +245,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.get("/api/auth", tags=["auth"], response_model=AuthInfo,
              summary="Whether a token is needed, and the role of the one sent (needs none itself)")
     def auth_info(request: Request) -> AuthInfo:
+        """Whether this station needs tokens (once they are configured; a bind address other than loopback
+        requires them), and the role of the `Authorization: Bearer` token sent, if any."""
         role = presented_role(request)
         return AuthInfo(required=settings.auth_enabled,
                         role="admin" if role == Role.ADMIN else "therapist" if role == Role.THERAPIST else None)

@@ -176,6 +176,8 @@ log = logging.getLogger(__name__)
 @router.get("/protocol", response_model=ProtocolTable, dependencies=[READ],
             summary="The diagnosis protocol: each experiment and the effects it makes visible")
 def protocol_table() -> ProtocolTable:
+    """Which candidate effect each experiment of the protocol makes visible, what each effect means, and
+    the baseline's recalibrated parameters with their default ranges (what `bounds` may narrow)."""
     from app.engine.diagnosis.protocol import DESCRIPTION, PREROLL_S, VISIBLE
     from app.engine.diagnosis.rotary import RotaryFamily
     from app.engine.params import EFFECT_MEANING, EFFECT_NAMES
@@ -200,6 +202,7 @@ def _checked_bounds(bounds: dict[str, tuple[float, float]]) -> dict[str, tuple[f
 @router.post("/bounds", response_model=BoundsChecked, dependencies=[ADMIN],
              summary="Check recalibration ranges with the rules a diagnosis applies (nothing runs); 422 says why")
 def check_bounds(req: BoundsCheck) -> BoundsChecked:
+    """The ranges as a diagnosis would take them, or the same 422 `POST /api/diagnoses` would give."""
     # the page asks before the protocol runs on the rig: a range refused only when the diagnosis is
     # posted would come after minutes of experiments
     return BoundsChecked(bounds={k: list(v) for k, v in _checked_bounds(req.bounds).items()})
@@ -256,6 +259,10 @@ def _common_who(runs: list[dict[str, Any]]) -> dict[str, Any]:
              responses={409: {"description": "A diagnosis is already running, or the server is stopping"}},
              summary="Start a gap diagnosis (protocol on the simulator, or stored runs); poll GET /api/runs/{id}")
 def start(req: DiagnosisRequest, store: StoreDep, jobs: JobsDep, request: Request) -> DiagnosisStarted:
+    """Either runs the protocol on the simulated rig with chosen effects switched on (`protocol`), or takes
+    stored runs' logs (`run_ids`: the protocol's runs on the rig, or logs uploaded with `POST /api/runs`).
+    The diagnosis runs in the background as a run of kind `diagnosis`; its report is the run's result
+    (`GET /api/runs/{id}/report`). One at a time."""
     if (req.protocol is None) == (req.run_ids is None):
         raise ParameterError("body = request: give exactly one of protocol or run_ids")
     sources: list[Path] = []
@@ -307,6 +314,7 @@ replays, each a few seconds on a 2-core station."""
                         409: {"description": "The diagnosis is not running (in this server)"}},
              summary="Stop a running gap diagnosis; answers the run once it is recorded cancelled")
 def stop_diagnosis(run_id: IdPath, store: StoreDep, jobs: JobsDep) -> RunInfo:
+    """The diagnosis stops at its next step; nothing it found so far is kept as a report."""
     r = store.run(run_id)
     if r is None:
         raise HTTPException(404, f"run {run_id} does not exist")

@@ -36,18 +36,25 @@ CONFLICT: dict[int | str, dict[str, Any]] = {409: {"description": "Illegal in th
 
 @router.get("/health", response_model=Health, summary="Engine state, loop rate, jitter and overruns")
 def health(station: StationDep) -> Health:
+    """Needs no token: the Docker health check and a lab's monitoring read it. Jitter and overruns are
+    the paced loop's since it last started (a connect, a procedure's end)."""
     return Health(**station.health())
 
 
 @router.get("/engine", dependencies=[READ], responses=AUTH_RESPONSES, response_model=EngineStatus,
             summary="State, allowed actions, progress")
 def status(station: StationDep) -> EngineStatus:
+    """The state machine (disconnected, idle, running, identifying, stopping, fault), the actions the state
+    allows, the running job's progress, the last run's outcome, the safety limits and any latched fault."""
     return EngineStatus(**station.status())
 
 
 @router.post("/engine/connect", dependencies=[THERAPIST], response_model=EngineStatus, responses=CONFLICT,
              summary="disconnected → idle")
 def connect(station: StationDep, body: ConnectRequest | None = None) -> EngineStatus:
+    """Starts the paced loop on the configured backend with the chosen set-up: the forearm robot
+    (`rotary`, the default), a linear test cylinder or the valve test set-up (`cpr`). 409 unless
+    disconnected."""
     body = body or ConnectRequest()
     station.connect(Rig(body.rig, body.cylinder))
     return EngineStatus(**station.status())
@@ -56,6 +63,7 @@ def connect(station: StationDep, body: ConnectRequest | None = None) -> EngineSt
 @router.post("/engine/disconnect", dependencies=[THERAPIST], response_model=EngineStatus, responses=CONFLICT,
              summary="idle → disconnected")
 def disconnect(station: StationDep) -> EngineStatus:
+    """Leaves the rig in its safe state (both chambers vented) and stops the loop. 409 unless idle."""
     station.disconnect()
     return EngineStatus(**station.status())
 
@@ -75,6 +83,10 @@ def _person(store: Store, person: str, session_id: int | None) -> str:
 @router.post("/engine/start", dependencies=[THERAPIST], response_model=Started, responses=CONFLICT,
              summary="idle → running: a scenario run")
 def start(req: RunRequest, station: StationDep, store: StoreDep) -> Started:
+    """Pressurises both chambers to P_w (1.5 s), then runs the scenario's isotonic exercise with the chosen
+    controller until its program ends or STOP; the run's log is written as it goes and its six metrics are
+    stored when it ends. Stored parameter sets may replace the exercise shape, the PID gains or the
+    fuzzy universes. 409 unless idle on the forearm robot; 422 names a refused field and nothing moves."""
     person = _person(store, req.person, req.session_id)
 
     def stored(field: str, set_id: int | None, kind: str) -> dict[str, Any] | None:
@@ -98,6 +110,10 @@ def start(req: RunRequest, station: StationDep, store: StoreDep) -> Started:
 @router.post("/engine/estimate", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
              summary="idle → identifying: rotary friction identification (thesis 3.2.4, 500 Hz)")
 def estimate(req: RotaryIdentRequest, station: StationDep) -> Started:
+    """Runs the thesis's static and dynamic experiments (Appendix 1, N_s and N_d per direction) and fits
+    T_s, T_c, ω_s and B per direction with their 95 % intervals and the Coulomb + viscous alternative
+    (the run's `result`). Minutes of rig time; poll `GET /api/engine` for progress. 409 unless idle on
+    the forearm robot."""
     from app.engine.ident.gui_rules import RotaryInputs
     from app.engine.ident.rotary import RotaryFrictionEstimator, RotaryFrictionProcedure
 
@@ -110,6 +126,8 @@ def estimate(req: RotaryIdentRequest, station: StationDep) -> Started:
 @router.post("/engine/estimate/linear", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
              summary="idle → identifying: linear friction identification (thesis 3.2.4, 200 Hz, linear rig)")
 def estimate_linear(req: LinearIdentRequest, station: StationDep) -> Started:
+    """Appendix 2's experiments on the connected linear cylinder; F_s, F_c, v_s and B per direction, as the
+    rotary identification reports them, plus the moving mass its inertia correction fitted."""
     from app.engine.ident.gui_rules import LinearInputs
     from app.engine.ident.linear import LinearFrictionEstimator, LinearFrictionProcedure
 
@@ -122,6 +140,10 @@ def estimate_linear(req: LinearIdentRequest, station: StationDep) -> Started:
 @router.post("/engine/estimate/dcv", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
              summary="idle → identifying: directional-valve CPR map and flow-model fit (thesis 3.2.3, 4.1; cpr rig)")
 def estimate_dcv(req: DCVIdentRequest, station: StationDep) -> Started:
+    """On the valve test set-up (`cpr`): the critical-pressure-ratio map per signal and supply pressure,
+    then the new flow model's ε and g per signal of the unstable band at 5 bar and k(P_s), compared with the
+    literature models on optional validation runs. The thesis's full grid takes hours of rig time; a grid
+    the fit cannot use is refused (422) before anything moves."""
     from dataclasses import asdict
 
     from app.engine.ident.dcv import CPRProcedure, DCVFlowEstimator, DCVInputs, check_fittable
@@ -162,6 +184,10 @@ def estimate_dcv(req: DCVIdentRequest, station: StationDep) -> Started:
 @router.post("/engine/tune/pid", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
              summary="idle → identifying: frequency-response autotune of one PRV loop (thesis 3.6.2; rotary rig)")
 def tune_pid(req: PIDTuneRequest, station: StationDep) -> Started:
+    """Sines at ω_c·[1/10, 1/3, 1, 3, 10] on one PRV's command around P_w, the plant's frequency response
+    at each, and the PIDF gains (≥ 0) that put the loop's crossover at ω_c with the phase margin asked
+    for, beside the thesis's gains on the same response; `result.gains_fields` can be stored as a gain
+    set. Nobody may hold the handle."""
     from dataclasses import asdict
 
     from app.engine.ident import pid_tune as pt
@@ -229,6 +255,8 @@ def stop(station: StationDep) -> EngineStatus:
 @router.post("/engine/estop", response_model=EngineStatus,
              summary="Emergency stop from any state: safe outputs within one control period, fault latched")
 def estop(station: StationDep) -> EngineStatus:
+    """Needs no token: anyone at the station may stop the rig. Both chambers vent at once (no controlled
+    release), the job ends and the fault `estop` latches until `POST /api/engine/clear`."""
     station.estop("API")
     return EngineStatus(**station.status())
 
@@ -236,6 +264,8 @@ def estop(station: StationDep) -> EngineStatus:
 @router.post("/engine/clear", dependencies=[THERAPIST], response_model=EngineStatus, responses=CONFLICT,
              summary="fault → disconnected")
 def clear(station: StationDep) -> EngineStatus:
+    """Acknowledges a latched fault (its cause stays in `GET /api/engine` until then); the station is then
+    disconnected, and a connect starts it again. 409 unless in fault."""
     station.clear()
     return EngineStatus(**station.status())
 
@@ -243,6 +273,8 @@ def clear(station: StationDep) -> EngineStatus:
 @router.post("/engine/calibrate", dependencies=[ADMIN], response_model=CalibrationResult, responses=CONFLICT,
              summary="idle: zero the torque sensor, the chamber pressure offsets or the encoder; saved with a date")
 def calibrate(body: CalibrateRequest, station: StationDep) -> CalibrationResult:
+    """Averages the chosen sensor at rest and stores its new zero with the date; for backends with a
+    scaling (Modbus, Quanser), not the simulator (409 there)."""
     return CalibrationResult(**station.calibrate(body.what, body.seconds, body.p_atm_bar))
 
 
@@ -254,6 +286,9 @@ def live(station: StationDep,
              "samples")),
          max_rows: int = Query(2000, ge=1, le=15000, description="At most this many samples, the newest")
          ) -> LiveData:
+    """The engine's recent periods (the last 15 000: 75 s at 200 Hz) with torque, target, pressures and
+    their references, speed and angle: poll with the previous answer's `t_last` as `since` to get each
+    sample once. A reconnect restarts the engine's clock: `t_last` then comes back smaller than `since`."""
     rows = station.live.since(since, max_rows)
     # NaN (no target outside an exercise) becomes null. Built from floats and None, the rows need no
     # validation, which would hold the interpreter lock in pydantic's core while the engine waits for

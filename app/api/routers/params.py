@@ -19,6 +19,9 @@ router = APIRouter(prefix="/api", tags=["parameters"], dependencies=[READ], resp
 def check_form(rig: Annotated[Literal["rotary", "linear"], Path(description=(
         "Which GUI: rotary (thesis Figure 3.19) or linear (Figure 3.27) friction identification"))],
                body: FormCheckIn) -> FormState:
+    """Enters the values in order, as a person types them into the GUI: each field unlocks when the one
+    before is valid, and the first refused one stops the entry with the GUI's own message. Nothing is
+    stored."""
     form = GuidedForm(rig)
     refused: str | None = None
     message = form.message
@@ -37,6 +40,9 @@ def check_form(rig: Annotated[Literal["rotary", "linear"], Path(description=(
 @router.post("/params", dependencies=[ADMIN], response_model=ParamSet, status_code=201,
              summary="Validate and store a parameter set")
 def save_params(body: ParamSetIn, store: StoreDep) -> ParamSet:
+    """Checked by the object the engine builds from it, so a stored set never fails when used: the GUIs'
+    rules for identification inputs; the ranges of an exercise shape, gains or fuzzy universes. A workout
+    or fuzzy set may give some fields (the rest keep their defaults); a 422 names the first refused one."""
     values = paramsets.validate(body.kind, dict(body.values), partial=True)  # ParameterError → 422
     row = store.param_set(store.save_params(body.kind, body.name, values))
     assert row is not None
@@ -45,6 +51,7 @@ def save_params(body: ParamSetIn, store: StoreDep) -> ParamSet:
 
 @router.get("/params/fields", response_model=dict[str, list[str]], summary="The fields of each parameter-set kind")
 def param_fields() -> dict[str, list[str]]:
+    """Field names per kind (rotary, linear, workout, gains, fuzzy), in entry order."""
     return {k: list(paramsets.fields_of(k)) for k in paramsets.KINDS}
 
 
@@ -52,12 +59,14 @@ def param_fields() -> dict[str, list[str]]:
 def list_params(store: StoreDep, kind: Annotated[Literal["rotary", "linear", "workout", "gains", "fuzzy"] | None,
                                                  Query(description="Only sets of this kind")] = None
                 ) -> list[ParamSet]:
+    """A start request takes a stored set by its id (`workout_id`, `gains_id`, `fuzzy_id`)."""
     return [ParamSet(**p) for p in store.param_sets(kind)]
 
 
 @router.get("/params/{set_id}", response_model=ParamSet, responses={404: {"description": "No such set"}},
             summary="One stored parameter set")
 def get_params(set_id: IdPath, store: StoreDep) -> ParamSet:
+    """The set as validated when stored (counts as integers, numbers as floats)."""
     row = store.param_set(set_id)
     if row is None:
         raise HTTPException(404, f"parameter set {set_id} does not exist")

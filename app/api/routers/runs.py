@@ -65,11 +65,17 @@ def list_runs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000, descri
                   "false: each run's result is left out (null; GET /api/runs/{id} has it). A gap "
                   "diagnosis's report alone is tens of kilobytes; the dashboard's history needs none"))] = True,
               ) -> list[RunInfo]:
+    """Every kind of run: exercises, identifications, tunings, protocol experiments, diagnoses and imported
+    logs, each with its status (`running`, `complete`, `stopped`, `fault`, `finished`, `cancelled`, `failed`,
+    `interrupted` when the server died under it), metrics and result. The filters combine."""
     return [RunInfo.from_row(r) for r in store.runs(limit, offset, kind, session_id, person, with_result)]
 
 
 @router.get("/{run_id}", response_model=RunInfo, responses=NOT_FOUND, summary="One run with metrics and results")
 def run_detail(run_id: IdPath, store: StoreDep) -> RunInfo:
+    """`result` is the run's own: an exercise's scored window (counted from `result.program_start_s` on the
+    log's clock), an identification's parameters with their intervals and test points, a tuning's gains
+    and loops, a diagnosis's report. `has_series`: whether a log is stored for `…/series` and `…/export`."""
     return RunInfo.from_row(_get(store, run_id))
 
 
@@ -79,6 +85,8 @@ def run_detail(run_id: IdPath, store: StoreDep) -> RunInfo:
                                             "stored report predates the schema"}},
             summary="A gap diagnosis's report, typed (the run's result, with a schema)")
 def diagnosis_report(run_id: IdPath, store: StoreDep) -> DiagnosisReport:
+    """The same report as the run's `result`, validated against `DiagnosisReport` so that a client can be
+    generated from the schema: baseline, ranking, verdict, where the gap lies, how far it shrinks."""
     r = _get(store, run_id)
     if r["kind"] != "diagnosis":
         raise HTTPException(404, f"run {run_id} is not a gap diagnosis (its kind: {r['kind']})")
@@ -98,6 +106,8 @@ def diagnosis_report(run_id: IdPath, store: StoreDep) -> DiagnosisReport:
 @router.patch("/{run_id}", response_model=RunInfo, dependencies=[THERAPIST],
               responses={404: {"description": "No such run"}}, summary="Replace a run's notes")
 def edit_notes(run_id: IdPath, body: NotesIn, store: StoreDep) -> RunInfo:
+    """What was observed after the run; `notes_edited` records when, and the notes it started with stay
+    in its `spec`."""
     if not store.set_run_notes(run_id, body.notes):
         raise HTTPException(404, f"run {run_id} does not exist")
     return RunInfo.from_row(_get(store, run_id))
@@ -110,6 +120,8 @@ def series(run_id: IdPath, store: StoreDep,
            max_rows: Annotated[int | None, Query(ge=2, le=10**7, description=(
                "At most this many rows: ``every`` is raised as far as needed (a plot of a run of "
                "any length asks for what it can draw)"))] = None) -> Series:
+    """The run's log as rows of the fixed columns (`t` on the engine's clock, the units as in the log
+    format), a running run's as far as written; `meta` is the log's JSON header."""
     r = _get(store, run_id)
     cols, data = _load(r)
     if max_rows is not None:
@@ -191,6 +203,7 @@ def export(run_id: IdPath, store: StoreDep, fmt: Annotated[Literal["csv", "parqu
                     "header as the struct meta, the run's result (identified parameters, scored window, ...) as "
                     "the struct result, run_id and units)")] = "csv"
         ) -> Response:
+    """The whole log as a file named `run-<id>.<ext>`; 404 when the run has no log."""
     r = _get(store, run_id)
     if fmt == "csv":
         return FileResponse(_log_path(r), media_type="text/csv", filename=f"run-{run_id}.csv")
