@@ -327,7 +327,7 @@ def test_a_researcher_tunes_a_pressure_loop_and_exercises_with_the_gains(station
     expect(page.locator("#state")).to_have_text("idle", timeout=60000)
     expect(page.locator("#dcv-box")).to_be_hidden()  # valve identification needs the valve set-up
     page.select_option("#pid-side", "b")
-    page.fill("#pid-bw", "6")  # ω_c = 6 rad/s: the experiment lasts 3 periods of 0.6 rad/s (31 s)
+    page.fill("#pid-bw", "10")  # ω_c = 10 rad/s: the experiment lasts 3 periods of 1 rad/s (19 s)
     page.click("#tune-pid")
     expect(page.locator("#state")).to_have_text("identifying")
     expect(page.locator("#pid-result")).to_be_visible(timeout=90000)
