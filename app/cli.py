@@ -46,17 +46,22 @@ def _sim_scenario(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - w0
     out: dict[str, object] = {**run.record(), "working_pressure_bar": args.pw, "seed": args.seed,
                               "sim_s": float(run.result.column("t")[-1]), "wall_s": wall}
+    return _sim_report(args, out, run.result.log, {**run.result.meta, **run.record()})
+
+
+def _sim_report(args: argparse.Namespace, summary: dict[str, object], log: np.ndarray, meta: dict[str, Any]) -> int:
+    """Write the run's log where ``--log-dir`` asks (its path joins the summary), then print the summary."""
     if args.log_dir:
         from app.engine.runlog import RunLogWriter
 
-        w = RunLogWriter(args.log_dir, args.name, {**run.result.meta, **run.record()})
-        w.append_many(run.result.log)
+        w = RunLogWriter(args.log_dir, args.name, meta)
+        w.append_many(log)
         w.close()
-        out["log"] = str(w.csv_path)
+        summary["log"] = str(w.csv_path)
     if args.json:
-        print(strict_json(out))
+        print(strict_json(summary))
     else:
-        for k_, v in out.items():
+        for k_, v in summary.items():
             print(f"{k_:28s} {v}")
     return 0
 
@@ -98,19 +103,7 @@ def _sim(args: argparse.Namespace) -> int:
         "active_fraction": float(active.mean()),
         "p_a_mean_bar": float(res.column("p_a").mean()), "p_b_mean_bar": float(res.column("p_b").mean()),
     }
-    if args.log_dir:
-        from app.engine.runlog import RunLogWriter
-
-        w = RunLogWriter(args.log_dir, args.name, res.meta)
-        w.append_many(res.log)
-        w.close()
-        summary["log"] = str(w.csv_path)
-    if args.json:
-        print(strict_json(summary))
-    else:
-        for k_, v in summary.items():
-            print(f"{k_:28s} {v}")
-    return 0
+    return _sim_report(args, summary, res.log, res.meta)
 
 
 def _bench(args: argparse.Namespace) -> int:
