@@ -380,7 +380,8 @@ def test_a_researcher_tunes_a_pressure_loop_and_exercises_with_the_gains(station
 
 def _show_as_a_finished_run(page: Any, base: str, lr: dict[str, Any]) -> None:
     """Show ``lr`` in "Last result" as the page shows a run that just ended, once the page has drawn the
-    station's own last run (an earlier test's): drawn after, that one had replaced ``lr`` (seen in CI)."""
+    station's own last run or newest stored one (an earlier test's): drawn after, that one had replaced
+    ``lr`` (seen in CI)."""
     import json
     import urllib.request
 
@@ -388,7 +389,9 @@ def _show_as_a_finished_run(page: Any, base: str, lr: dict[str, Any]) -> None:
 
     with urllib.request.urlopen(base + "/api/engine", timeout=10) as r:
         last = json.loads(r.read())["last_run"]
-    if last is not None:
+    with urllib.request.urlopen(base + "/api/runs?limit=1&with_result=false", timeout=10) as r:
+        stored = json.loads(r.read())
+    if last is not None or stored:  # without a last run in memory the page shows the newest stored one
         expect(page.locator("#last")).not_to_have_text("No run finished yet.")
     page.evaluate("lr => showLast(lr)", lr)
 
@@ -562,6 +565,19 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
         page.wait_for_timeout(500)
         expect(page.locator("#msg")).not_to_contain_text("admin role")
         expect(page.locator("#go")).to_be_disabled()
+        # restarted since that run, the station keeps no last run in memory: the dashboard shows the newest
+        # stored one (it had said "No run finished yet" over a history of runs), once signed in
+        page.goto(base)
+        run_id = page.locator("#runs tbody tr").first.get_attribute("data-run")
+        srv.stop()
+        srv = ServedStation(tmp_path, viser_port=0, CWRR_AUTO_CONNECT="false", CWRR_THERAPIST_TOKEN=therapist,
+                            CWRR_ADMIN_TOKEN="admin-browser-" + "0123456789")
+        page.goto(srv.url)
+        page.fill("#token", therapist)
+        page.click("#signin-btn")
+        # (1.5 s of it reached no scored window: "Run N: stopped (an evaluation window needs …)")
+        expect(page.locator("#last")).to_contain_text(f"Run {run_id}: stopped", timeout=15000)
+        expect(page.locator(f"#runs tr[data-run='{run_id}']")).to_have_class("shown")
         assert not errors, errors
     finally:
         srv.stop()
