@@ -348,7 +348,6 @@ class RunJob:
     ending: str = "complete"
     t_release: float | None = None
     release_from: tuple[float, float] = (0.0, 0.0)  # the chambers' pressures it starts from [bar abs]
-    last: Command | None = None
     p_mean: tuple[float, float] | None = None  # the chambers' recent pressures [bar abs] (RELEASE_TAU_S)
 
     def request_stop(self) -> None:
@@ -376,15 +375,14 @@ class RunJob:
         if self.t_prog is None:
             if meas.t - self.t0 < self.pressurise_s:
                 z = self.spec.pw_bar - self.controller.config.p_atm_bar  # PRV static map P = z + P_atm (SPEC §3)
-                self.last = Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
-                return self.last
+                return Command(z, z, SAFE_COMMAND.u_a, SAFE_COMMAND.u_b)
             self.t_prog = meas.t
             self.on_program_start(meas.t)
         tr = meas.t - self.t_prog
         if self.t_d is not None and not self.disturbed and tr >= self.t_d:
             self.disturbed = True
             self.on_disturbance()
-        self.last = cmd = self.controller.step(meas, dt)
+        cmd = self.controller.step(meas, dt)
         self.rows.append((tr, meas.torque, float(self.controller.mode)))
         if tr >= self.t_end + 0.5:
             self._begin_release(meas)
@@ -397,7 +395,7 @@ class RunJob:
                 self.on_release(meas.t)
             except Exception:  # the simulated user's cue runs in the loop: it must not fault the rig
                 logger.exception("the release's callback failed")
-        if self.last is None:  # stopped before its first period: nothing to lower
+        if meas.t == self.t0:  # stopped before its first period gave a command: nothing to lower
             self.done = True
         else:
             # averaged, not one sample: a small chamber under the thesis's gains can toggle 1.4 bar
