@@ -54,6 +54,34 @@ def _report_the_engine(station: tuple[str, str]) -> Iterator[None]:
     print("engine after the test:", st["state"], st.get("fault"), (st.get("safety") or {}).get("fault"))
 
 
+def _call(base: str, method: str, path: str, body: dict[str, object] | None = None) -> dict[str, Any]:
+    """One JSON request to the station (as a script would make it, beside the browser)."""
+    import json
+    import urllib.request
+
+    req = urllib.request.Request(base + path, method=method, data=json.dumps(body or {}).encode(),
+                                 headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(req, timeout=10) as r:
+        out: dict[str, Any] = json.loads(r.read())
+        return out
+
+
+def _connected_and_idle(base: str) -> None:
+    """Bring the station to idle, whatever an earlier test left it doing."""
+    state = _call(base, "GET", "/api/engine")["state"]
+    if state in ("running", "identifying"):
+        _call(base, "POST", "/api/engine/stop")
+        deadline = time.monotonic() + 30
+        while (state := _call(base, "GET", "/api/engine")["state"]) not in ("idle", "fault"):
+            assert time.monotonic() < deadline, state
+            time.sleep(0.1)
+    if state == "fault":
+        _call(base, "POST", "/api/engine/clear")
+        state = "disconnected"
+    if state == "disconnected":
+        _call(base, "POST", "/api/engine/connect")
+
+
 @pytest.fixture(scope="module")
 def browser() -> Iterator[object]:
     from playwright.sync_api import sync_playwright
@@ -910,33 +938,16 @@ def test_a_slow_server_gets_one_poll_at_a_time_and_the_plot_holds_each_sample_on
     twice, and a late empty answer reset it and refetched 3000 rows.
     """
     import itertools
-    import json
-    import urllib.request
 
     from playwright.sync_api import Browser
 
     assert isinstance(browser, Browser)
     base, _viser = station
 
-    def call(method: str, path: str, body: dict[str, object] | None = None) -> dict[str, object]:
-        req = urllib.request.Request(base + path, method=method, data=json.dumps(body or {}).encode(),
-                                     headers={"Content-Type": "application/json"})
-        with urllib.request.urlopen(req, timeout=10) as r:
-            out: dict[str, object] = json.loads(r.read())
-            return out
+    def call(method: str, path: str, body: dict[str, object] | None = None) -> dict[str, Any]:
+        return _call(base, method, path, body)
 
-    state = call("GET", "/api/engine")["state"]
-    if state in ("running", "identifying"):  # whatever an earlier test left going
-        call("POST", "/api/engine/stop")
-        deadline = time.monotonic() + 30
-        while (state := call("GET", "/api/engine")["state"]) not in ("idle", "fault"):
-            assert time.monotonic() < deadline, state
-            time.sleep(0.1)
-    if state == "fault":
-        call("POST", "/api/engine/clear")
-        state = "disconnected"
-    if state == "disconnected":
-        call("POST", "/api/engine/connect")
+    _connected_and_idle(base)
     page = browser.new_page(viewport={"width": 1200, "height": 800})
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
@@ -969,13 +980,17 @@ def test_on_a_phone_or_tablet_both_pages_fit_and_the_stop_buttons_stay_on_screen
     page = browser.new_page(viewport={"width": width, "height": 800})
     try:
         overflow = "() => document.scrollingElement.scrollWidth - window.innerWidth"
+
+        def stop_buttons_on_screen() -> None:
+            for button in ("#stop", "#estop"):
+                box = page.locator(button).bounding_box()
+                assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= width, (button, box)
+                assert box["y"] + box["height"] <= 800, (button, box)  # in the header, before any scrolling
+
         page.goto(base + "/")
         expect(page.locator("#state")).not_to_have_text("…")
         assert page.evaluate(overflow) <= 0, page.evaluate(overflow)
-        for button in ("#stop", "#estop"):
-            box = page.locator(button).bounding_box()
-            assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= width, (button, box)
-            assert box["y"] + box["height"] <= 800, (button, box)  # in the header, before any scrolling
+        stop_buttons_on_screen()
         if width < 720:
             # one column in an exercise's order: the live charts right after the exercise form, the
             # identification and tuning forms after the history
@@ -1001,6 +1016,53 @@ def test_on_a_phone_or_tablet_both_pages_fit_and_the_stop_buttons_stay_on_screen
         assert box is not None and 0 <= box["y"] and box["y"] + box["height"] <= 800, box
         page.goto(base + "/static/diagnosis.html")
         expect(page.locator("#protocol tr").nth(1)).to_be_visible()  # built from the server's table
+        expect(page.locator("#state")).not_to_have_text("…")
         assert page.evaluate(overflow) <= 0, page.evaluate(overflow)
+        stop_buttons_on_screen()  # the diagnosis page has them too (it runs its protocol on the rig)
     finally:
         page.close()
+
+
+def test_the_diagnosis_page_shows_the_engine_and_stops_it_from_its_header(station: tuple[str, str],
+                                                                         browser: object) -> None:
+    """The gap diagnosis runs its protocol on the connected rig, perhaps with a person's arm in it, and its
+    page had no state, no STOP and no E-STOP: stopping the rig meant going back to the Station page
+    (issue 7: an always-visible emergency stop)."""
+    from playwright.sync_api import Browser, expect
+
+    assert isinstance(browser, Browser)
+    base, _viser = station
+    _connected_and_idle(base)
+    page = browser.new_page(viewport={"width": 1200, "height": 800})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    exercise = {"scenario": "SC-1", "controller": "pid", "target_nm": 1.2}
+    try:
+        page.goto(base + "/static/diagnosis.html")
+        expect(page.locator("#state")).to_have_text("idle")
+        expect(page.locator("#stop")).to_be_disabled()  # nothing to stop
+        expect(page.locator("#estop")).to_be_enabled()
+        # the state follows what the station does, whoever started it
+        run_id = _call(base, "POST", "/api/engine/start", exercise)["run_id"]
+        expect(page.locator("#state")).to_have_text("running")
+        page.click("#stop")
+        expect(page.locator("#state")).to_have_text("idle")
+        assert _call(base, "GET", f"/api/runs/{run_id}")["status"] == "stopped"
+        # E-STOP on screen with the page scrolled to its end, and it latches the fault from a run
+        _call(base, "POST", "/api/engine/start", exercise)
+        expect(page.locator("#state")).to_have_text("running")
+        page.locator("#protocol tr").last.scroll_into_view_if_needed()
+        assert page.evaluate("window.scrollY") > 0
+        box = page.locator("#estop").bounding_box()
+        assert box is not None and 0 <= box["y"] and box["y"] + box["height"] <= 800, box
+        page.click("#estop")
+        expect(page.locator("#state")).to_have_text("fault")
+        st = _call(base, "GET", "/api/engine")
+        assert st["state"] == "fault" and st["fault"] == "emergency stop (API)", st
+        expect(page.locator("#stop")).to_be_disabled()
+        expect(page.locator("#estop")).to_be_enabled()  # pressed again, it still answers
+    finally:
+        if _call(base, "GET", "/api/engine")["state"] == "fault":
+            _call(base, "POST", "/api/engine/clear")
+        page.close()
+    assert not errors, errors
