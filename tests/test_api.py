@@ -608,6 +608,44 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
         plots.stop()
 
 
+def test_the_viser_page_shows_the_station_state_and_its_e_stop_acts_without_a_3d_view(tmp_path: Path) -> None:
+    """A therapist watching the live plots stops the rig from that page. viser runs a button's
+    on_click only for a page whose 3-D view has sent a camera; a browser without WebGL never does,
+    so the press is sent here from a bare websocket, as such a page sends it."""
+    import socket
+
+    import msgspec
+    from viser._messages import GuiUpdateMessage
+
+    from app.api.liveplots import LivePlots
+    from app.engine.station import State, Station
+    from tests.conftest import viser_viewer
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    st = Station(data_dir=tmp_path)
+    plots = LivePlots(st, "127.0.0.1", port)
+    viewer = None
+    try:
+        plots.publish()
+        assert plots.h_state.content == "Station: **disconnected**"
+        viewer = viser_viewer(port)
+        press = GuiUpdateMessage(plots.h_estop._impl.uuid, {"value": True})
+        viewer.send(msgspec.msgpack.encode(press.as_serializable_dict()))
+        deadline = time.monotonic() + 10
+        while st.state != State.FAULT:
+            assert time.monotonic() < deadline, "the press did not stop the station"
+            time.sleep(0.01)
+        assert st.fault_message == "emergency stop (viser live plots)"
+        plots.publish()
+        assert plots.h_state.content == "Station: **fault** (emergency stop (viser live plots))"
+    finally:
+        if viewer is not None:
+            viewer.close()
+        plots.stop()
+
+
 @pytest.mark.slow
 def test_the_cpr_rig_maps_the_valve_and_fits_the_flow_model(client: TestClient) -> None:
     """Thesis 3.2.3/4.1 through the API, on a grid small enough for CI (two band signals at 5 bar)."""

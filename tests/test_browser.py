@@ -209,6 +209,10 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     # a GPU would not show: closed for the picture
     for close in viser.locator(".mantine-Notification-closeButton").all():
         close.click()
+    # the station's state and an E-STOP above the charts (its press: tests/test_api.py, from a page
+    # without WebGL, whose button callbacks viser itself would drop)
+    expect(viser.locator("p", has_text="Station:")).to_have_text("Station: running")
+    expect(viser.get_by_role("button", name="E-STOP")).to_be_visible()
     viser.screenshot(path=str(SHOTS / "4-viser-live-plots.png"))
     viser.close()
     page.bring_to_front()

@@ -13,6 +13,7 @@ import threading
 from typing import Any
 
 import numpy as np
+from viser._messages import GuiUpdateMessage
 
 from app.engine.metrics import METRIC_LABELS, METRICS
 from app.engine.station import LIVE_COLUMNS, Station
@@ -25,6 +26,8 @@ MAX_POINTS = 400
 HANDLE_STEP_RAD = 1e-3  # the 3-D handle is re-posed (and every viewer re-renders) only on a larger turn
 
 _COL = {c: i for i, c in enumerate(LIVE_COLUMNS)}
+ESTOP_HINT = ("Emergency stop: vent both chambers within one control period, from any state; "
+              "latched until cleared on the Station page")
 
 
 XSCALE: dict[str, Any] = {"x": {"time": False}}  # seconds of rig time, not a calendar date
@@ -74,6 +77,14 @@ class LivePlots:
         ws.on_client_connect(lambda c: self._viewers.add(c.client_id))
         ws.on_client_disconnect(lambda c: self._viewers.discard(c.client_id))
         gui = self.server.gui
+        # The station's state and E-STOP above the charts: a therapist watching them stops the rig
+        # here, not in the dashboard's tab. The press is taken from the websocket's own messages, not
+        # from the button's on_click: viser runs a button's callbacks only for a page whose 3-D view
+        # has sent a camera, which a browser without WebGL never does, and that press would be lost.
+        self._state_shown = ""
+        self.h_state = gui.add_markdown("Station: …")
+        self.h_estop = gui.add_button("E-STOP", color="red", hint=ESTOP_HINT)
+        ws.register_handler(GuiUpdateMessage, self._on_gui_update)
         z = (np.zeros(2), np.zeros(2))
         self.h_torque = gui.add_uplot(data=(np.zeros(2), np.zeros(2), np.zeros(2)),
                                       series=({"label": "t [s]"}, _series("T_i [N·m]", "#1f77b4"),
@@ -106,6 +117,10 @@ class LivePlots:
         self.server.initial_camera.position = (0.28, -0.32, 0.30)
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
 
+    def _on_gui_update(self, _client_id: int, message: GuiUpdateMessage) -> None:
+        if message.uuid == self.h_estop._impl.uuid:
+            self.station.estop("viser live plots")
+
     def start(self) -> None:
         """Start publishing."""
         self._thread = threading.Thread(target=self._run, name="cwrr-viser", daemon=True)
@@ -135,6 +150,11 @@ class LivePlots:
         when the run ends whoever watches: drawn later, for a viewer who connects during the
         next exercise, matplotlib would hold the interpreter for tens of milliseconds mid-run.
         """
+        state = self.station.state.value
+        if state != self._state_shown:  # sent on a change only: an idle station costs the viewers nothing
+            self._state_shown = state
+            fault = f" ({self.station.fault_message})" if state == "fault" and self.station.fault_message else ""
+            self.h_state.content = f"Station: **{state}**{fault}"
         last = self.station.last_run
         if last is not None and last is not self._last_run:
             self._last_run = last
