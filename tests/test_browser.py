@@ -223,6 +223,8 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     expect(page.locator("#state")).to_have_text("idle")
     expect(page.locator("#metrics")).to_be_visible(timeout=5000)
     expect(page.locator("#last")).to_contain_text("stopped")
+    # what the exercise was, as the history names it, not its number alone
+    expect(page.locator("#last p").first).to_contain_text("(SC-1 · pid · 1.2 N·m, P-007): stopped")
     mae = float(page.locator("#metrics tr").first.locator("td").nth(1).inner_text())
     assert 0.0 < mae < 0.5, mae  # scored over the part of the window reached (live SC-1 PID: ≈ 0.13 N·m)
     row = page.locator("#runs tbody tr").first
