@@ -732,8 +732,8 @@ def test_the_dashboard_history_names_every_kind_of_run() -> None:
 
     from app.engine.station import RUN_KINDS
 
-    html = (Path(__file__).resolve().parents[1] / "app" / "static" / "index.html").read_text(encoding="utf-8")
-    block = re.search(r"const KINDS = \{(.*?)\};", html, re.S)
+    js = (Path(__file__).resolve().parents[1] / "app" / "static" / "dashboard.js").read_text(encoding="utf-8")
+    block = re.search(r"const KINDS = \{(.*?)\};", js, re.S)
     assert block is not None
     labelled = set(re.findall(r"(\w+): [`']", block.group(1)))
     assert labelled | {"workout"} == set(RUN_KINDS), sorted(set(RUN_KINDS) ^ (labelled | {"workout"}))
@@ -774,3 +774,19 @@ def test_both_pages_link_an_icon_the_server_has(client: TestClient) -> None:
         assert icon is not None, page
         r = client.get(icon.group(1))
         assert r.status_code == 200 and r.headers["content-type"].startswith("image/svg+xml"), page
+
+
+def test_each_page_and_what_it_loads_is_served_and_revalidated_at_every_load(client: TestClient) -> None:
+    """A page, its scripts and its stylesheet come from one version of the station: without a Cache-Control
+    a browser may keep any of them as long as it sees fit, and after an update run a page with the
+    script before it. Each is revalidated instead, and answers 304 while it is unchanged."""
+    for page, own in (("/", "/static/dashboard.js"), ("/static/diagnosis.html", "/static/diagnosis.js")):
+        r = client.get(page)
+        assert r.status_code == 200 and r.headers["cache-control"] == "no-cache", page
+        loads = re.findall(r'<(?:script src|link rel="stylesheet" href)="([^"]+)"', r.text)
+        assert loads == ["/static/station.css", "/static/station.js", own], (page, loads)  # shared ones first
+        for url in [page, *loads]:
+            r = client.get(url)
+            assert r.status_code == 200 and r.headers["cache-control"] == "no-cache", url
+            again = client.get(url, headers={"If-None-Match": r.headers["etag"]})
+            assert again.status_code == 304, url

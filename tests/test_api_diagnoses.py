@@ -119,7 +119,7 @@ def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestCli
     assert r.status_code == 409 and r.json()["detail"] == (
         f"diagnosis {old}'s stored report does not fit the schema (how_far: Field required); "
         f"GET /api/runs/{old} has it as stored")
-    page = client.get("/static/diagnosis.html")
+    page = client.get("/static/diagnosis.js")
     assert page.status_code == 200 and "/api/diagnoses" in page.text
 
 

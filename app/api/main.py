@@ -17,7 +17,7 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.responses import JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
@@ -251,11 +251,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return AuthInfo(required=settings.auth_enabled,
                         role="admin" if role == Role.ADMIN else "therapist" if role == Role.THERAPIST else None)
 
-    @app.get("/", include_in_schema=False)
-    def index() -> FileResponse:
-        return FileResponse(STATIC / "index.html")
+    static = RevalidatedStaticFiles(directory=STATIC)
 
-    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    @app.get("/", include_in_schema=False)
+    async def index(request: Request) -> Response:
+        return await static.get_response("index.html", request.scope)
+
+    app.mount("/static", static, name="static")
     base_openapi = app.openapi
 
     def openapi() -> dict[str, Any]:
@@ -265,6 +267,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.openapi = openapi  # type: ignore[method-assign]
     return app
+
+
+class RevalidatedStaticFiles(StaticFiles):
+    """The pages, their scripts and their stylesheet, each revalidated at every load (its ETag answers
+    304 while it is unchanged). Without a Cache-Control a browser keeps a file for a share of its age
+    as it sees fit: after an update of the station a page could run with a script of the version before."""
+
+    def file_response(self, *args: Any, **kwargs: Any) -> Response:
+        response = super().file_response(*args, **kwargs)
+        response.headers["Cache-Control"] = "no-cache"
+        return response
 
 
 _BOUNDS = ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum", "multipleOf")

@@ -1,7 +1,12 @@
-// The header every page of the station shares: the engine's state, STOP and E-STOP. A person may be
-// strapped to the rig whichever page is open (the gap diagnosis runs its protocol on the connected rig),
-// so stopping it never depends on the page: E-STOP answers from any state and needs no token.
+// What every page of the station shares: $ and esc, the token, and the header with the engine's state,
+// STOP and E-STOP. A person may be strapped to the rig whichever page is open (the gap diagnosis runs
+// its protocol on the connected rig), so stopping it never depends on the page: E-STOP answers from any
+// state and needs no token.
 'use strict';
+
+const $ = id => document.getElementById(id);
+// text put into HTML: every character that could open a tag or end an attribute, escaped (null shows as '')
+const esc = v => String(v ?? '').replace(/[&<>"']/g, c => ({'&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;', "'": '&#39;'})[c]);
 
 // the token lives in this tab only (sessionStorage), never in the page's address or a cookie
 function authHeaders() {
@@ -11,10 +16,10 @@ function authHeaders() {
 
 // the engine's state in the header; STOP where the engine has something to stop (E-STOP is never disabled)
 function showEngineState(st) {
-  const s = document.getElementById('state');
+  const s = $('state');
   s.textContent = st.state;
   s.className = st.state;
-  document.getElementById('stop').disabled = !st.allowed.includes('stop');
+  $('stop').disabled = !st.allowed.includes('stop');
 }
 
 // press E-STOP; `shown` draws the status the station answers with (the page's own renderer, if it has one)
@@ -22,27 +27,27 @@ async function pressEstop(shown = showEngineState) {
   const r = await fetch('/api/engine/estop', {method: 'POST', headers: authHeaders()}).catch(() => null);
   if (r && r.ok) { shown(await r.json()); return; }
   const why = r ? ((await r.json().catch(() => ({}))).detail || r.statusText) : 'the station does not answer';
-  document.getElementById('state').textContent = 'E-STOP NOT CONFIRMED: ' + why;
+  $('state').textContent = 'E-STOP NOT CONFIRMED: ' + why;
 }
 
 // a page without its own engine poll: keep the header's state current (one request at a time, each
 // given up after 10 s: a half-open connection must not freeze the state shown next to E-STOP)
 function watchEngine(periodMs = 1000) {
-  const stop = document.getElementById('stop');
+  const stop = $('stop');
   stop.addEventListener('click', async () => {
     stop.disabled = true;
     const r = await fetch('/api/engine/stop', {method: 'POST', headers: authHeaders()}).catch(() => null);
     if (r && r.ok) showEngineState(await r.json());
   });
-  document.getElementById('estop').addEventListener('click', () => pressEstop());
+  $('estop').addEventListener('click', () => pressEstop());
   const tick = async () => {
     const t = performance.now();
     try {
       const r = await fetch('/api/engine', {headers: authHeaders(), signal: AbortSignal.timeout(10000)});
       if (r.ok) showEngineState(await r.json());
-      else document.getElementById('state').textContent = r.status === 401 || r.status === 403 ? 'sign in' : 'station error';
+      else $('state').textContent = r.status === 401 || r.status === 403 ? 'sign in' : 'station error';
     } catch (e) {
-      document.getElementById('state').textContent = 'server not reachable';
+      $('state').textContent = 'server not reachable';
     } finally {
       setTimeout(tick, Math.max(0, periodMs - (performance.now() - t)));
     }
