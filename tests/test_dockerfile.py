@@ -172,6 +172,13 @@ def test_the_install_steps_work_in_a_fresh_venv(tmp_path: Path) -> None:
         mod = subprocess.run([str(venv / "bin" / "python"), "-c", "import app; print(app.__file__)"], env=env,
                              cwd=tmp_path, capture_output=True, text=True, check=True).stdout
         assert str(venv) in mod  # served from the installed package
+        # the dashboard's pages and every file they load come with the package (its package data)
+        import urllib.request
+
+        for url in ("/", "/static/diagnosis.html", "/static/station.css", "/static/station.js",
+                    "/static/dashboard.js", "/static/diagnosis.js", "/static/favicon.svg"):
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}{url}", timeout=10) as r:
+                assert r.status == 200 and r.read(), url
     finally:
         server.terminate()
         server.wait(30)
