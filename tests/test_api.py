@@ -7,6 +7,7 @@ import json
 import math
 import re
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +17,7 @@ from fastapi.testclient import TestClient
 
 from app.engine.hardware.base import Measurement
 from app.storage import Store
-from tests.conftest import wait_engine
+from tests.conftest import free_port, wait_engine
 
 
 def _assert_finished(st: dict[str, Any]) -> None:
@@ -542,21 +543,27 @@ def test_stored_gains_reach_the_controller() -> None:
         RunSpec(workout={"amplitude_deg": 200})
 
 
-def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
-    # uPlot blanks a whole chart when a binary series holds NaN: before an exercise the buffer has
-    # no target or references, and those charts must still draw
-    import socket
-
+@pytest.fixture()
+def live_plots(tmp_path: Path) -> Iterator[tuple[Any, Any, int]]:
+    """A station (not connected) with its viser live plots on a free port: (station, plots, port)."""
     from app.api.liveplots import LivePlots
     from app.engine.station import Station
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = int(s.getsockname()[1])
-    from tests.conftest import viser_viewer
-
+    port = free_port()
     st = Station(data_dir=tmp_path)
     plots = LivePlots(st, "127.0.0.1", port)
+    try:
+        yield st, plots, port
+    finally:
+        plots.stop()
+
+
+def test_the_viser_publisher_never_sends_nan(live_plots: tuple[Any, Any, int]) -> None:
+    # uPlot blanks a whole chart when a binary series holds NaN: before an exercise the buffer has
+    # no target or references, and those charts must still draw
+    from tests.conftest import viser_viewer
+
+    st, plots, port = live_plots
     viewer = None
     try:
         for k in range(400):
@@ -605,27 +612,20 @@ def test_the_viser_publisher_never_sends_nan(tmp_path: Path) -> None:
     finally:
         if viewer is not None:
             viewer.close()
-        plots.stop()
 
 
-def test_the_viser_page_shows_the_station_state_and_its_e_stop_acts_without_a_3d_view(tmp_path: Path) -> None:
+def test_the_viser_page_shows_the_station_state_and_its_e_stop_acts_without_a_3d_view(
+        live_plots: tuple[Any, Any, int]) -> None:
     """A therapist watching the live plots stops the rig from that page. viser runs a button's
     on_click only for a page whose 3-D view has sent a camera; a browser without WebGL never does,
     so the press is sent here from a bare websocket, as such a page sends it."""
-    import socket
-
     import msgspec
     from viser._messages import GuiUpdateMessage
 
-    from app.api.liveplots import LivePlots
-    from app.engine.station import State, Station
+    from app.engine.station import State
     from tests.conftest import viser_viewer
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = int(s.getsockname()[1])
-    st = Station(data_dir=tmp_path)
-    plots = LivePlots(st, "127.0.0.1", port)
+    st, plots, port = live_plots
     viewer = None
     try:
         plots.publish()
@@ -643,7 +643,6 @@ def test_the_viser_page_shows_the_station_state_and_its_e_stop_acts_without_a_3d
     finally:
         if viewer is not None:
             viewer.close()
-        plots.stop()
 
 
 @pytest.mark.slow
