@@ -789,3 +789,5 @@ def test_each_page_and_what_it_loads_is_served_and_revalidated_at_every_load(cli
             assert r.status_code == 200 and r.headers["cache-control"] == "no-cache", url
             again = client.get(url, headers={"If-None-Match": r.headers["etag"]})
             assert again.status_code == 304, url
+            head = client.head(url)
+            assert head.status_code == 200 and head.headers["etag"] == r.headers["etag"] and not head.content, url

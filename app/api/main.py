@@ -253,7 +253,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     static = RevalidatedStaticFiles(directory=STATIC)
 
-    @app.get("/", include_in_schema=False)
+    @app.api_route("/", methods=["GET", "HEAD"], include_in_schema=False)  # HEAD: a monitor's "is it up"
     async def index(request: Request) -> Response:
         return await static.get_response("index.html", request.scope)
 
