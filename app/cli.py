@@ -478,7 +478,10 @@ def _diagnose(args: argparse.Namespace) -> int:
             bounds[name.strip()] = (float(lo), float(hi))
         except ValueError:
             raise ValueError(f"--bound {text!r}: expected NAME=LO:HI, e.g. dead_volume_scale=0.9:1.1") from None
-    report = diagnose_dir(args.logdir, adapter=args.adapter, held_out=args.held_out, bounds=bounds)
+    if args.traces and not args.json_out:
+        raise ValueError("--traces: the traces go into the report's JSON; give --json OUT.json too")
+    report = diagnose_dir(args.logdir, adapter=args.adapter, held_out=args.held_out, bounds=bounds,
+                          traces=args.traces)
     if args.json_out:
         # strict JSON (a held parameter's SD is NaN): the report is read by other tools
         Path(args.json_out).write_text(strict_json(report, indent=1))
@@ -650,6 +653,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="station logs: the recalibration's range for one baseline parameter, replacing the wide "
                         "default (e.g. dead_volume_scale=0.9:1.1 for measured dead volumes); repeatable; the "
                         "report lists every range under baseline.bounds")
+    g.add_argument("--traces", action="store_true",
+                   help="with --json: add each held-out log's measured and predicted channels over time "
+                        "(traces: the baseline's and the verdict model's predictions, 300 block means per log)")
     g.set_defaults(fn=_diagnose)
     q = sub.add_parser("protocol", help="run the diagnosis protocol on the simulated rig and write its logs")
     q.add_argument("outdir", help="directory for the logs (NAME.csv + NAME.json)")

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
@@ -95,6 +97,30 @@ def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestCli
     assert run["metrics"]["e_after"] < run["metrics"]["e_before"]
     assert {"baseline", "ranking", "verdict", "where", "how_far"} <= set(rep)
     assert rep["baseline"]["bounds"]["gain_a"] == [0.9, 1.1] and rep["baseline"]["bounds"]["gain_b"] == [0.8, 1.2]
+    # where in time: each held-out log as measured beside both predictions, kept beside the logs and not in
+    # the result every listing of runs carries
+    assert "traces" not in rep
+    tr = client.get(f"/api/diagnoses/{rid}/traces")
+    assert tr.status_code == 200, tr.text
+    t = tr.json()
+    assert t["run_id"] == rid and t["model"] == rep["verdict"]["effects"]  # what the "after" series adds
+    assert [lg["log"] for lg in t["logs"]] == rep["experiments"]["held_out"]
+    for lg in t["logs"]:
+        assert 2 <= len(lg["t"]) <= 300 and set(lg["channels"]) == {w["channel"] for w in rep["where"]}
+        for series in lg["channels"].values():
+            assert set(series) == {"measured", "baseline", "after"}
+            assert len(series["measured"]) == len(series["baseline"]) == len(series["after"]) == len(lg["t"])
+
+    def rms(log: dict[str, Any], channel: str, key: str) -> float:
+        pairs = [(m, p) for m, p in zip(log["channels"][channel]["measured"], log["channels"][channel][key],
+                                        strict=True) if m is not None and p is not None]
+        return float(np.sqrt(np.mean([(m - p) ** 2 for m, p in pairs])))
+
+    # the sensor offsets the verdict names: the chambers' pressures nearer the measurement after than before
+    for ch in ("p_a", "p_b"):
+        before = np.mean([rms(lg, ch, "baseline") for lg in t["logs"]])
+        after = np.mean([rms(lg, ch, "after") for lg in t["logs"]])
+        assert after < before, (ch, before, after)
     # the same report, typed: every field it holds comes back, with the schema /openapi.json describes
     typed = client.get(f"/api/runs/{rid}/report")
     assert typed.status_code == 200, typed.text
@@ -111,6 +137,9 @@ def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestCli
     r = client.get(f"/api/runs/{oid}/report")
     assert r.status_code == 404 and r.json()["detail"] == f"run {oid} is not a gap diagnosis (its kind: imported)"
     assert client.get("/api/runs/999999/report").status_code == 404
+    r = client.get(f"/api/diagnoses/{oid}/traces")
+    assert r.status_code == 404 and r.json()["detail"] == f"run {oid} is not a gap diagnosis (its kind: imported)"
+    assert client.get("/api/diagnoses/999999/traces").status_code == 404
     # a report stored by an older engine, without a field the schema needs: said, not a server error
     store = client.app.state.store  # type: ignore[attr-defined]
     old = store.run_started("diagnosis", {}, "")
@@ -119,6 +148,9 @@ def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestCli
     assert r.status_code == 409 and r.json()["detail"] == (
         f"diagnosis {old}'s stored report does not fit the schema (how_far: Field required); "
         f"GET /api/runs/{old} has it as stored")
+    r = client.get(f"/api/diagnoses/{old}/traces")  # stored before the station kept traces
+    assert r.status_code == 404 and r.json()["detail"] == (
+        f"diagnosis {old} has no traces (it was stored before the station kept them)")
     page = client.get("/static/diagnosis.js")
     assert page.status_code == 200 and "/api/diagnoses" in page.text
 

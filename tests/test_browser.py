@@ -746,6 +746,17 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     # what the recalibration made of each nominal value, in the engine's words
     expect(page.locator("#recal")).to_contain_text("chamber dead volumes × nominal")
     expect(page.locator("#recal tr")).to_have_count(14)  # a header and the rotary rig's 13 parameters
+    # where in time: the held-out log's channel furthest above its floor, each prediction's error against
+    # the noise floor's band; the measured values beside the predictions one choice away
+    expect(page.locator("#trace-box")).to_be_visible()
+    expect(page.locator("#trace-log option")).to_have_text(["hold_closed-2"])
+    n_pred = int(page.locator("#trace").get_attribute("data-series") or 0)
+    assert n_pred in (1, 2), n_pred  # the baseline's, and the verdict model's if it names an effect
+    expect(page.locator("#trace-legend")).to_contain_text("± noise floor")
+    page.select_option("#trace-view", "values")
+    expect(page.locator("#trace")).to_have_attribute("data-series", str(n_pred + 1))
+    expect(page.locator("#trace-legend")).to_contain_text("measured")
+    page.select_option("#trace-view", "residual")
     page.screenshot(path=str(SHOTS / "6-gap-diagnosis.png"), full_page=True)
     # the person typed on the page went with the protocol's run and its experiments' runs
     with urllib.request.urlopen(base + "/api/runs?kind=diagnosis_protocol&limit=1", timeout=10) as r:

@@ -394,6 +394,9 @@ class _Line:
     def noise_shows(self, p: Experiment) -> dict[str, np.ndarray]:
         return {}
 
+    def times(self, p: Experiment) -> np.ndarray:
+        return p.t - p.t[0]
+
     def regimes(self, p: Experiment) -> dict[str, np.ndarray]:
         return {}
 
@@ -501,6 +504,40 @@ class _SlopeOrOffset(_Line):
         xs = p.inputs["x"]
         k = x["per_sign.k"] if "per_sign" in effects else 0.0
         return {"y": x["a"] * xs * (1.0 + k * np.sign(xs)) + (x["offset.c"] if "offset" in effects else 0.0)}
+
+
+def test_traces_show_each_held_out_log_over_time_under_the_baseline_and_the_verdicts_model() -> None:
+    """Where in time the gap lies: block means of the measurement and of both predictions, each skipping
+    the samples the channel does not score. y = 2x + 0.3 is fitted as a slope, then with an offset."""
+    rng = np.random.default_rng(4)
+    exps = []
+    for k in range(2):
+        x = rng.uniform(-1.0, 1.0, 2000)
+        y = 2.0 * x + 0.3 + rng.normal(0.0, 0.01, x.size)
+        y[1000:1010] = np.nan  # ten samples the channel does not score, inside one block
+        exps.append(Experiment(f"e{k}", 5.0 + np.arange(x.size) * 0.01, {"x": x}, {"y": y}, {}))
+    r = core.diagnose(_SlopeOrOffset(), exps[:1], exps[1:], with_traces=True)
+    assert r["verdict"]["effects"] == ["offset"]
+    tr = r["traces"]
+    assert tr["model"] == ["offset"] and [lg["log"] for lg in tr["logs"]] == ["e1"]
+    (lg,) = tr["logs"]
+    size = -(-2000 // core.TRACE_POINTS)  # 7 samples a block: 286 points
+    assert len(lg["t"]) == -(-2000 // size) <= core.TRACE_POINTS
+    assert lg["t"][0] == pytest.approx(0.03) and lg["t"][1] == pytest.approx(0.10)  # from the log's start
+    y = exps[1].channels["y"]
+    series = lg["channels"]["y"]
+    assert set(series) == {"measured", "baseline", "after"}
+    assert series["measured"][0] == pytest.approx(float(np.mean(y[:size])), rel=1e-3)
+    # samples 1000–1009 unscored: block 142 (994–1000) keeps the mean of its scored six, 143 (1001–1007)
+    # has none and is null
+    assert series["measured"][142] == pytest.approx(float(np.nanmean(y[994:1001])), rel=1e-3)
+    assert series["measured"][143] is None and series["baseline"][143] is None and series["after"][143] is None
+    meas, base, after = (np.array([np.nan if v is None else v for v in series[k]])
+                         for k in ("measured", "baseline", "after"))
+    # the slope alone leaves the offset; with it the prediction sits on the measurement
+    assert abs(np.nanmean(meas - base)) > 0.2 and np.sqrt(np.nanmean((meas - after) ** 2)) < 0.02
+    # asked for only: a report without them stays as it was
+    assert "traces" not in core.diagnose(_SlopeOrOffset(), exps[:1], exps[1:])
 
 
 @pytest.mark.parametrize(("truth", "levels", "outcome"), [
@@ -722,6 +759,28 @@ def test_cwrr_diagnose_says_which_logs_were_sampled_unevenly(tmp_path: Path,
             assert uneven[f"{name}[calibration]"]["irregular_intervals"] == 1
         else:
             assert "sampled unevenly" not in said and uneven == {}
+
+
+def test_cwrr_diagnose_traces_a_chambers_held_out_record_over_time(tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """``--traces``: the held-out part of Ultimaker_020's record (a dominant leak) as measured, beside the
+    constant pressure of the baseline and the leak's decay."""
+    from app.cli import main
+
+    shutil.copy(REF / "chamber_leak" / "Ultimaker_020.csv", tmp_path)
+    assert main(["diagnose", str(tmp_path), "--traces"]) == 2  # nowhere to put them
+    assert "--traces: the traces go into the report's JSON; give --json OUT.json too" in capsys.readouterr().err
+    out = tmp_path / "r.json"
+    assert main(["diagnose", str(tmp_path), "--json", str(out), "--traces"]) == 0
+    rep = json.loads(out.read_text())["reports"]["Ultimaker_020"]
+    tr = rep["traces"]
+    assert tr["model"] == rep["verdict"]["effects"] == ["external_leakage"]
+    (lg,) = tr["logs"]
+    assert lg["log"] == "Ultimaker_020[held-out]" and lg["t"][0] < 1.0 < lg["t"][-1]  # from its own start
+    p = {k: np.array(v, dtype=float) for k, v in lg["channels"]["p"].items()}
+    assert np.ptp(p["baseline"]) < 1e-9 < np.ptp(p["measured"])  # the baseline holds p0; the record falls
+    rms = {k: float(np.sqrt(np.mean((p[k] - p["measured"]) ** 2))) for k in ("baseline", "after")}
+    assert rms["after"] < 0.1 * rms["baseline"], rms
 
 
 def test_cwrr_diagnose_names_a_channel_that_reads_one_value_throughout(tmp_path: Path,

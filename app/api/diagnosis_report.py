@@ -356,3 +356,46 @@ class DiagnosisReport(_Open):
     alternatives: list[Alternative] = Field(default_factory=list)
     verdict: Verdict
     how_far: HowFar
+
+
+class ChannelTrace(Documented):
+    """One channel of one held-out log over time: block means, null where a block scores no sample.
+
+    Attributes:
+        measured: What the rig's sensor read (the channel's unit: bar abs, N·m, N).
+        baseline: What the recalibrated baseline predicts.
+        after: What the model the verdict ends with predicts (absent when no effect is significant).
+    """
+
+    measured: list[Num]
+    baseline: list[Num]
+    after: list[Num] | None = None
+
+
+class LogTrace(Documented):
+    """A held-out log's channels over time.
+
+    Attributes:
+        log: The log's name.
+        t: Each block's mean time from the log's start [s].
+        channels: Channel → its measured and predicted series.
+    """
+
+    log: str
+    t: list[Num]
+    channels: dict[str, ChannelTrace]
+
+
+class DiagnosisTraces(Documented):
+    """Where in time the gap lies: each held-out log as measured, beside the baseline's and the verdict model's
+    predictions (at most 300 block means per series, four significant digits).
+
+    Attributes:
+        run_id: The diagnosis run they belong to.
+        model: The effects the ``after`` series adds to the baseline (empty: none was significant).
+        logs: One entry per held-out log.
+    """
+
+    run_id: int
+    model: list[str]
+    logs: list[LogTrace]

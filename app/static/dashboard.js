@@ -534,7 +534,6 @@ function fitCanvas(canvas) {
 }
 // a result chart's gridlines at niceTicks' values, in the colours the caller set: horizontal ones from x0
 // to x1 labelled left of x0, vertical ones from y0 to y1 labelled under y1 (a −0 reads 0)
-const tickLabel = (v, digits) => (Math.abs(v) < 1e-12 ? 0 : v).toFixed(digits);
 function gridY(ctx, yt, Y, x0, x1) {
   ctx.textAlign = 'right';
   yt.ticks.forEach(y => { ctx.beginPath(); ctx.moveTo(x0, Y(y)); ctx.lineTo(x1, Y(y)); ctx.stroke();
@@ -546,17 +545,6 @@ function gridX(ctx, xt, X, y0, y1) {
   xt.ticks.forEach(x => { ctx.beginPath(); ctx.moveTo(X(x), y0); ctx.lineTo(X(x), y1); ctx.stroke();
                          ctx.fillText(tickLabel(x, xt.digits), X(x), y1 + 13); });
   ctx.textAlign = 'left';
-}
-function niceTicks(lo, hi, n = 4) {
-  const raw = (hi - lo) / n;
-  if (!(raw > 0) || !isFinite(raw)) return {ticks: [lo], digits: 2};
-  const mag = 10 ** Math.floor(Math.log10(raw));
-  const mult = [1, 2, 2.5, 5, 10].find(m => m * mag >= raw * (1 - 1e-9));
-  const step = mult * mag;
-  const digits = Math.max(0, -Math.floor(Math.log10(step) + 1e-9) + (mult === 2.5 ? 1 : 0));
-  const ticks = [];
-  for (let k = Math.ceil(lo / step - 1e-9); k * step <= hi + step * 1e-9; k++) ticks.push(k * step);
-  return {ticks, digits};
 }
 // rows: [t, column 1, column 2, ...]; shade: a time span [s] to tint (a run's scored window)
 function draw(canvas, series, lo, hi, rows = live, shade = null) {

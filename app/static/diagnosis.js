@@ -186,6 +186,7 @@ async function poll(id) {
   if (r.status !== 'complete') { say(`diagnosis ${id} failed: ${(r.result || {}).error || r.status}`, 'bad'); return; }
   say(`diagnosis ${id} complete (stored as run ${id})`, 'ok');
   show(r.result);
+  loadTraces(id, r.result);
   // the report as the API stores it (strict JSON), for scripts and notebooks
   const dl = $('download');
   if (dl.href) URL.revokeObjectURL(dl.href);
@@ -344,4 +345,78 @@ function show(rep) {
   $('recal').innerHTML = rc.params.length ? `<tr><th>Parameter</th><th>fitted</th><th>nominal</th><th>range</th>${inModel ? `<th>with ${esc(last)}</th>` : ''}</tr>` +
     rc.params.map(p => `<tr class="${p.far ? 'far' : ''}"><td title="${esc(p.name)}">${esc(p.meaning || p.name)}</td><td>${fmt(p.value)}${p.at_bound ? ' (end of range)' : ''}</td>` +
       `<td>${fmt(p.nominal)}</td><td>${fmt(p.range[0])} … ${fmt(p.range[1])}</td>${inModel ? `<td class="${p.in_model_far ? 'far' : ''}" title="${p.in_model_far ? 'past what a tolerance explains here too' : ''}">${fmt(p.in_model)}</td>` : ''}</tr>`).join('') : '';
+}
+
+// where in time: a held-out log's channel as measured, beside the baseline's and the verdict model's
+// predictions (GET /api/diagnoses/{id}/traces); it opens on the log and channel holding most of the gap
+let traces = null, traceFloor = {};
+async function loadTraces(id, rep) {
+  traces = null;
+  traceFloor = Object.fromEntries(rep.where.map(w => [w.channel, w.floor ?? w.noise]));
+  $('trace-box').hidden = true;
+  $('trace-msg').textContent = '';
+  const r = await fetch(`/api/diagnoses/${id}/traces`, {headers: authHeaders()}).catch(() => null);
+  if (!r || !r.ok) { $('trace-msg').textContent = r ? await refusal(r) : 'the station does not answer'; return; }
+  traces = await r.json();
+  if (!traces.logs.length) return;
+  $('trace-log').innerHTML = traces.logs.map((lg, i) => `<option value="${i}">${esc(lg.log)}</option>`).join('');
+  $('trace-ch').innerHTML = Object.keys(traces.logs[0].channels).map(c => `<option>${esc(c)}</option>`).join('');
+  // the channel furthest above its floor, and the log with the largest share of its error
+  const worst = [...rep.where].sort((a, b) => b.rms / (b.floor || b.noise || 1) - a.rms / (a.floor || a.noise || 1))[0];
+  if (worst && worst.channel in traces.logs[0].channels) {
+    $('trace-ch').value = worst.channel;
+    const top = Object.entries(worst.experiments || {}).sort((a, b) => b[1].share - a[1].share)[0];
+    const k = top ? traces.logs.findIndex(lg => lg.log === top[0]) : -1;
+    if (k >= 0) $('trace-log').value = String(k);
+  }
+  $('trace-box').hidden = false;
+  drawTrace();
+}
+$('trace-log').onchange = $('trace-ch').onchange = $('trace-view').onchange = () => drawTrace();
+function drawTrace() {
+  if (!traces) return;
+  const lg = traces.logs[+$('trace-log').value], ch = $('trace-ch').value, s = lg.channels[ch];
+  const model = traces.model.length ? `after, with ${traces.model.join(' + ')}` : null;
+  const residual = $('trace-view').value === 'residual', floor = traceFloor[ch];
+  const minus = ys => ys.map((v, i) => v === null || s.measured[i] === null ? null : v - s.measured[i]);
+  // values: the measurement a wide grey band underneath, so that a prediction agreeing with it runs inside
+  // the band; residuals: each prediction's error, against the band the sensor's noise alone leaves (±floor)
+  const series = [...(residual ? [] : [['measured', s.measured, '#9aa4ae', 4]]),
+                  ['baseline', residual ? minus(s.baseline) : s.baseline, '#b3261e', 1.3],
+                  ...(s.after && model ? [[model, residual ? minus(s.after) : s.after, '#0a7d32', 1.3]] : [])];
+  const svg = $('trace'), W = svg.clientWidth || 600, H = 240, l = 52, r = 10, top = 10, bot = 30;
+  const ts = lg.t.filter(v => v !== null), vs = series.flatMap(x => x[1]).filter(v => v !== null);
+  if (residual && floor) vs.push(-floor, floor);
+  if (ts.length < 2 || !vs.length) { svg.innerHTML = ''; return; }
+  let lo = Math.min(...vs), hi = Math.max(...vs);
+  const pad = (hi - lo) * 0.06 || Math.abs(hi) * 0.01 || 1;
+  lo -= pad; hi += pad;
+  const t0 = ts[0], t1 = ts[ts.length - 1];
+  const X = t => l + (W - l - r) * (t - t0) / (t1 - t0), Y = v => top + (H - top - bot) * (hi - v) / (hi - lo);
+  const yt = niceTicks(lo, hi, 4), xt = niceTicks(t0, t1, 6);
+  let out = yt.ticks.map(v => `<line x1="${l}" x2="${W - r}" y1="${Y(v)}" y2="${Y(v)}" stroke="#e3e7ec"/>` +
+    `<text x="${l - 4}" y="${Y(v) + 4}" text-anchor="end">${tickLabel(v, yt.digits)}</text>`).join('');
+  out += xt.ticks.map(t => `<text x="${X(t)}" y="${H - bot + 14}" text-anchor="middle">${tickLabel(t, xt.digits)}</text>`).join('');
+  if (residual && floor) {
+    out += `<rect x="${l}" y="${Y(floor)}" width="${W - l - r}" height="${Y(-floor) - Y(floor)}" fill="#9aa4ae" opacity="0.3"><title>± the noise floor (${fmt(floor)})</title></rect>`;
+  }
+  out += `<text x="${W - r}" y="${H - 2}" text-anchor="end">t [s from the log's start]</text>`;
+  const UNIT = {p_a: 'bar abs', p_b: 'bar abs', p_s: 'bar abs', p: 'bar abs', torque: 'N·m', force: 'N'};
+  const unit = residual ? (UNIT[ch] || '').replace(' abs', '') : UNIT[ch];
+  out += `<text x="${l + 4}" y="${top + 10}">${residual ? 'prediction − measured, ' : ''}${esc(ch)}${unit ? ` [${unit}]` : ''}</text>`;
+  // a block no sample of the channel scores (null) breaks its line
+  for (const [, ys, colour, width] of series) {
+    let d = '', pen = false;
+    ys.forEach((v, i) => {
+      if (v === null || lg.t[i] === null) { pen = false; return; }
+      d += `${pen ? 'L' : 'M'}${X(lg.t[i]).toFixed(1)} ${Y(v).toFixed(1)} `;
+      pen = true;
+    });
+    out += `<path d="${d}" fill="none" stroke="${colour}" stroke-width="${width}" stroke-linejoin="round"/>`;
+  }
+  svg.innerHTML = out;
+  svg.dataset.series = series.length;
+  const band = residual && floor ? [['▬ ± noise floor', '#9aa4ae']] : [];
+  $('trace-legend').replaceChildren(...[...series.map(([name, , colour]) => [`${name === 'measured' ? '▬' : '—'} ${name}`, colour]),
+    ...band].map(([text, colour]) => Object.assign(document.createElement('span'), {textContent: text, style: `color:${colour}`})));
 }

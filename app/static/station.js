@@ -54,3 +54,18 @@ function watchEngine(periodMs = 1000) {
   };
   tick();
 }
+
+// a chart's gridlines at round values (steps of 1, 2, 2.5 or 5 × 10^k, about n of them from lo to hi),
+// and the digits that print them
+function niceTicks(lo, hi, n = 4) {
+  const raw = (hi - lo) / n;
+  if (!(raw > 0) || !isFinite(raw)) return {ticks: [lo], digits: 2};
+  const mag = 10 ** Math.floor(Math.log10(raw));
+  const mult = [1, 2, 2.5, 5, 10].find(m => m * mag >= raw * (1 - 1e-9));
+  const step = mult * mag;
+  const digits = Math.max(0, -Math.floor(Math.log10(step) + 1e-9) + (mult === 2.5 ? 1 : 0));
+  const ticks = [];
+  for (let k = Math.ceil(lo / step - 1e-9); k * step <= hi + step * 1e-9; k++) ticks.push(k * step);
+  return {ticks, digits};
+}
+const tickLabel = (v, digits) => (Math.abs(v) < 1e-12 ? 0 : v).toFixed(digits);

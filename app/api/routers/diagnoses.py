@@ -9,6 +9,7 @@ to see what the tool finds) or stored runs' logs. The report is the run's
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 import threading
@@ -21,10 +22,12 @@ from pydantic import Field
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ
 from app.api.deps import IdPath, JobsDep, StoreDep
+from app.api.diagnosis_report import DiagnosisTraces
 from app.api.jobs import JobRefused
 from app.api.models import Documented, RunInfo
 from app.engine.params import EFFECT_NAMES, ParameterError
-from app.storage import Store
+from app.engine.runlog import atomic_write_text
+from app.storage import Store, strict_json
 
 # running a diagnosis is an admin's; the protocol's table is documentation, read by any role (a therapist
 # opening a stored report on the diagnosis page needs its effects' plain words)
@@ -225,7 +228,10 @@ def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, source
             for src in sources:
                 for suffix in (".csv", ".json"):
                     shutil.copyfile(src.with_suffix(suffix), logdir / (src.stem + suffix))
-        report = diagnose_dir(logdir, adapter="station", held_out=req.held_out, stop=stop, bounds=req.bounds)
+        report = diagnose_dir(logdir, adapter="station", held_out=req.held_out, stop=stop, bounds=req.bounds,
+                              traces=True)
+        # ≈ 10⁵ numbers: beside the logs, not in the run's result, which every listing of runs carries
+        atomic_write_text(traces_path(logdir), strict_json(report.pop("traces")))
         v = report["verdict"]
         hf = report["how_far"]
         # metrics are numbers (the runs table's contract); the verdict's names are in the report
@@ -240,6 +246,16 @@ def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, source
             store.run_finished(run_id, "failed", None, {"error": str(exc), "trace": traceback.format_exc(limit=3)})
         except Exception:  # the store itself is gone: the log is all that is left
             log.exception("diagnosis %d failed and could not be recorded", run_id)
+
+
+def logdir_of(data_dir: Path, run_id: int) -> Path:
+    """Where diagnosis ``run_id`` keeps its logs (and its traces)."""
+    return data_dir / "diagnoses" / f"diagnosis-{run_id}"
+
+
+def traces_path(logdir: Path) -> Path:
+    """The file a diagnosis's traces are kept in, beside its logs."""
+    return logdir / "traces.json"
 
 
 def _common_who(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -295,13 +311,36 @@ def start(req: DiagnosisRequest, store: StoreDep, jobs: JobsDep, request: Reques
     data_dir = Path(request.app.state.station.data_dir)
     spec: dict[str, Any] = req.model_dump() | _common_who(inputs)
     run_id = store.run_started("diagnosis", spec, "")
-    logdir = data_dir / "diagnoses" / f"diagnosis-{run_id}"
+    logdir = logdir_of(data_dir, run_id)
     try:
         jobs.start(f"diagnosis-{run_id}", lambda stop: _work(store, run_id, req, logdir, sources, stop, jobs.stop))
     except JobRefused as exc:  # lost a race with another request: the stored run says why
         store.run_finished(run_id, "cancelled", None, {"error": str(exc)})
         raise HTTPException(409, str(exc)) from exc
     return DiagnosisStarted(run_id=run_id)
+
+
+@router.get("/{run_id}/traces", response_model=DiagnosisTraces, dependencies=[READ],
+            responses={404: {"description": "No such run, not a gap diagnosis, or one kept without traces"},
+                       409: {"description": "The diagnosis is still running, failed or was cancelled"}},
+            summary="Where in time the gap lies: each held-out log measured beside the predictions")
+def traces(run_id: IdPath, store: StoreDep, request: Request) -> DiagnosisTraces:
+    """Each held-out log's channels over time: the measurement, the recalibrated baseline's prediction and
+    the prediction of the model the verdict ends with, as at most 300 block means per series. The report
+    (`GET /api/runs/{id}/report`) says how large the residuals are per channel, regime and log; these say
+    when they arise. Kept beside the diagnosis's logs; a diagnosis stored before the station kept them
+    answers 404."""
+    r = store.run(run_id)
+    if r is None:
+        raise HTTPException(404, f"run {run_id} does not exist")
+    if r["kind"] != "diagnosis":
+        raise HTTPException(404, f"run {run_id} is not a gap diagnosis (its kind: {r['kind']})")
+    if r["status"] != "complete":
+        raise HTTPException(409, f"diagnosis {run_id} is {r['status']}; its traces come when it is complete")
+    path = traces_path(logdir_of(Path(request.app.state.station.data_dir), run_id))
+    if not path.is_file():
+        raise HTTPException(404, f"diagnosis {run_id} has no traces (it was stored before the station kept them)")
+    return DiagnosisTraces.model_validate(json.loads(path.read_text(encoding="utf-8")) | {"run_id": run_id})
 
 
 STOP_WAIT_S = 20.0

@@ -164,6 +164,10 @@ class Family(Protocol):
         """Noise SD per channel (the floor no model can beat)."""
         ...
 
+    def times(self, prep: Any) -> np.ndarray:
+        """Time of each sample :meth:`measured` gives, from the log's start [s]."""
+        ...
+
     def noise_shows(self, prep: Any) -> dict[str, np.ndarray]:
         """Per scored sample, the share of a channel's noise variance a right model's error carries [0–1].
 
@@ -562,6 +566,52 @@ def ljung_box(r: np.ndarray, lags: int = 10) -> tuple[list[float], float]:
     ac = [float(r[:-k] @ r[k:]) / den for k in range(1, lags + 1)]
     q = n * (n + 2) * sum(a * a / (n - k) for k, a in enumerate(ac, start=1))
     return ac, float(stats.chi2.sf(q, lags))
+
+
+TRACE_POINTS = 300
+"""Points per log and series in :func:`traces`: a chart's width, not the log's rate."""
+
+
+def traces(family: Family, preps: list[Any], fits: dict[str, Fit], names: list[str],
+           points: int = TRACE_POINTS) -> list[dict[str, Any]]:
+    """Each log's measured channels over time beside the predictions of ``fits``: where in time a gap lies.
+
+    Block means of at most ``points`` per series, four significant digits: the report's tables say
+    how large the residuals are, this says when. Every series of a channel skips the samples its
+    measurement does not score (a block with none is null), so their means cover the same samples.
+
+    Args:
+        family: The rig family.
+        preps: Prepared logs.
+        fits: Label → fit (the baseline, the model the verdict ends with).
+        names: The logs' names.
+        points: Points per series.
+
+    Returns:
+        Per log: ``log``, ``t`` [s from its start] and, per channel, ``measured`` and each label's series.
+    """
+    def blocks(x: np.ndarray, size: int) -> list[float | None]:
+        x = np.asarray(x, dtype=float)
+        pad = np.full((-len(x)) % size, np.nan)
+        grid = np.concatenate([x, pad]).reshape(-1, size)
+        ok = np.isfinite(grid)
+        n = ok.sum(axis=1)
+        m = np.where(ok, grid, 0.0).sum(axis=1) / np.maximum(n, 1)
+        return [float(f"{v:.4g}") if k else None for v, k in zip(m, n, strict=True)]
+
+    out = []
+    for prep, name in zip(preps, names, strict=True):
+        t = family.times(prep)
+        size = max(1, math.ceil(len(t) / points))
+        meas = family.measured(prep)
+        preds = {label: family.predict(prep, f.params, f.effects) for label, f in fits.items()}
+        # a prediction is averaged over the samples its measurement scores, so both means cover the same
+        out.append({"log": name, "t": blocks(t, size),
+                    "channels": {c: {"measured": blocks(meas[c], size)}
+                                 | {label: blocks(np.where(np.isfinite(meas[c]), pr[c], np.nan), size)
+                                    for label, pr in preds.items()}
+                                 for c in family.channels}})
+    return out
 
 
 def where(family: Family, preps: list[Any], f: Fit, floor: np.ndarray,
@@ -1280,7 +1330,8 @@ def base_groups(family: Family) -> list[list[Param]]:
 
 def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
              candidates: Sequence[str] | None = None, protocol: dict[str, list[str]] | None = None,
-             blocks: int | None = None, stop: threading.Event | None = None) -> dict[str, Any]:
+             blocks: int | None = None, stop: threading.Event | None = None,
+             with_traces: bool = False) -> dict[str, Any]:
     """The full diagnosis; returns the report (JSON-able).
 
     BLAS runs on one thread meanwhile, process-wide (the server runs one
@@ -1302,14 +1353,17 @@ def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
             (default 1 when ≥ 4 experiments are held out, else 8).
         stop: Once set, the diagnosis ends at its next cost evaluation with
             :class:`Cancelled` (a server shutting down must not leave it running).
+        with_traces: Add ``traces`` (:func:`traces` of the held-out logs under the
+            baseline and the verdict's model; ≈ 10⁵ numbers, so only when asked).
     """
     with threadpool_limits(limits=1, user_api="blas"):
-        return _diagnose(family, calib_exps, held_exps, candidates, protocol, blocks, stop)
+        return _diagnose(family, calib_exps, held_exps, candidates, protocol, blocks, stop, with_traces)
 
 
 def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
               candidates: Sequence[str] | None = None, protocol: dict[str, list[str]] | None = None,
-              blocks: int | None = None, stop: threading.Event | None = None) -> dict[str, Any]:
+              blocks: int | None = None, stop: threading.Event | None = None,
+              with_traces: bool = False) -> dict[str, Any]:
     """:func:`diagnose` with BLAS already limited."""
     if not calib_exps or not held_exps:
         raise ValueError("need at least one calibration and one held-out experiment")
@@ -1450,7 +1504,14 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     e_final, nr_final = _e(ref_sc, norm)
     recal = recalibration(family, base, selected[-1] if selected else None)
     chans = list(family.channels)
-    return {
+    held_names = [getattr(e, "name", str(i)) for i, e in enumerate(held_exps)]
+    extra: dict[str, Any] = {}
+    if with_traces:
+        # the held-out logs as the baseline and the last effect the verdict kept predict them
+        fits = {"baseline": base} | ({"after": selected[-1].fit} if selected else {})
+        extra["traces"] = {"model": list(selected[-1].fit.effects) if selected else [],
+                           "logs": traces(family, held, fits, held_names)}
+    return extra | {
         "family": family.name,
         "experiments": {"calibration": [getattr(e, "name", "?") for e in calib_exps],
                         "held_out": [getattr(e, "name", "?") for e in held_exps],
@@ -1471,7 +1532,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                      # the form the recalibration found beside the nominal one, and whether it was kept
                      "form": form},
         "noise_floor": {"nrmse": dict(zip(chans, map(float, floor / spread), strict=True)), "e": e_floor},
-        "where": where(family, held, base, floor, [getattr(e, "name", str(i)) for i, e in enumerate(held_exps)]),
+        "where": where(family, held, base, floor, held_names),
         # an effect taken out of the verdict for an alternative keeps its single fit's significance
         # against the baseline here, and says what took its place
         "ranking": [c.as_dict() | ({"dropped_for": dropped[c.effect]} if c.effect in dropped else {})

@@ -95,6 +95,9 @@ class ChamberFamily:
     def noise(self, prep: _ChamberPrep) -> dict[str, float]:
         return {"p": prep.noise}
 
+    def times(self, prep: _ChamberPrep) -> np.ndarray:
+        return prep.t - prep.t[0]
+
     def noise_shows(self, prep: _ChamberPrep) -> dict[str, np.ndarray]:
         return {}  # every prediction is the model's own: each sample carries the whole noise
 
@@ -174,6 +177,7 @@ class _DrivePrep:
     v_full: np.ndarray  # full-rate speed, for the nonlinear columns
     ba: tuple[np.ndarray, np.ndarray]
     keep: slice
+    t: np.ndarray  # of the kept samples, from the log's start [s]
 
 
 class DriveFamily:
@@ -232,13 +236,17 @@ class DriveFamily:
         # zero-phase filter (measured on a fixed unit-variance sequence, not approximated)
         unit = filtfilt(b, a, np.random.default_rng(0).standard_normal(min(len(q), 20000)))
         noise = white_noise_sd(measured) * float(np.std(unit[edge:-edge]))
-        return _DrivePrep(v[k], acc[k], f[k], exp.inputs.get("q_ref", q)[k], noise, v, (b, a), k)
+        return _DrivePrep(v[k], acc[k], f[k], exp.inputs.get("q_ref", q)[k], noise, v, (b, a), k,
+                          np.arange(len(q))[k] * dt)
 
     def measured(self, prep: _DrivePrep) -> dict[str, np.ndarray]:
         return {"force": prep.force}
 
     def noise(self, prep: _DrivePrep) -> dict[str, float]:
         return {"force": prep.noise}
+
+    def times(self, prep: _DrivePrep) -> np.ndarray:
+        return prep.t
 
     def noise_shows(self, prep: _DrivePrep) -> dict[str, np.ndarray]:
         return {}  # every prediction is the model's own: each sample carries the whole noise

@@ -798,6 +798,9 @@ class RotaryFamily:
     def noise(self, prep: RotaryPrep) -> dict[str, float]:
         return dict(prep.noise)
 
+    def times(self, prep: RotaryPrep) -> np.ndarray:
+        return np.arange(len(prep.torque_f))[prep.keep] * prep.dt
+
     def noise_shows(self, prep: RotaryPrep) -> dict[str, np.ndarray]:
         return {} if prep.torque_noise_shows is None else {"torque": prep.torque_noise_shows}
 
