@@ -481,7 +481,16 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.traces and not args.json_out:
         raise ValueError("--traces: the traces go into the report's JSON; give --json OUT.json too")
     report = diagnose_dir(args.logdir, adapter=args.adapter, held_out=args.held_out, bounds=bounds,
-                          traces=args.traces)
+                          traces=args.traces or bool(args.plots))
+    if args.plots:
+        from app.engine.diagnosis.plots import diagnosis_plots
+
+        files = diagnosis_plots(report, args.plots)
+        print(f"figures: {len(files)} in {args.plots} (how far, and each held-out log's prediction errors)")
+    if not args.traces:  # drawn, not asked for in the JSON
+        report.pop("traces", None)
+        for r in report.get("reports", {}).values():
+            r.pop("traces", None)
     if args.json_out:
         # strict JSON (a held parameter's SD is NaN): the report is read by other tools
         Path(args.json_out).write_text(strict_json(report, indent=1))
@@ -656,6 +665,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--traces", action="store_true",
                    help="with --json: add each held-out log's measured and predicted channels over time "
                         "(traces: the baseline's and the verdict model's predictions, 300 block means per log)")
+    g.add_argument("--plots", default="", metavar="DIR",
+                   help="write the figures here: how far the gap shrinks per channel, and each held-out log's "
+                        "prediction errors over time against the noise floor (PNG)")
     g.set_defaults(fn=_diagnose)
     q = sub.add_parser("protocol", help="run the diagnosis protocol on the simulated rig and write its logs")
     q.add_argument("outdir", help="directory for the logs (NAME.csv + NAME.json)")

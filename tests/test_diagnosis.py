@@ -761,17 +761,19 @@ def test_cwrr_diagnose_says_which_logs_were_sampled_unevenly(tmp_path: Path,
             assert "sampled unevenly" not in said and uneven == {}
 
 
-def test_cwrr_diagnose_traces_a_chambers_held_out_record_over_time(tmp_path: Path,
+def test_cwrr_diagnose_traces_and_draws_a_chambers_held_out_record_over_time(tmp_path: Path,
                                                                    capsys: pytest.CaptureFixture[str]) -> None:
     """``--traces``: the held-out part of Ultimaker_020's record (a dominant leak) as measured, beside the
     constant pressure of the baseline and the leak's decay."""
     from app.cli import main
 
-    shutil.copy(REF / "chamber_leak" / "Ultimaker_020.csv", tmp_path)
-    assert main(["diagnose", str(tmp_path), "--traces"]) == 2  # nowhere to put them
+    logs = tmp_path / "logs"  # the outputs go beside it: a report in the directory would be read as a log
+    logs.mkdir()
+    shutil.copy(REF / "chamber_leak" / "Ultimaker_020.csv", logs)
+    assert main(["diagnose", str(logs), "--traces"]) == 2  # nowhere to put them
     assert "--traces: the traces go into the report's JSON; give --json OUT.json too" in capsys.readouterr().err
     out = tmp_path / "r.json"
-    assert main(["diagnose", str(tmp_path), "--json", str(out), "--traces"]) == 0
+    assert main(["diagnose", str(logs), "--json", str(out), "--traces"]) == 0
     rep = json.loads(out.read_text())["reports"]["Ultimaker_020"]
     tr = rep["traces"]
     assert tr["model"] == rep["verdict"]["effects"] == ["external_leakage"]
@@ -781,6 +783,14 @@ def test_cwrr_diagnose_traces_a_chambers_held_out_record_over_time(tmp_path: Pat
     assert np.ptp(p["baseline"]) < 1e-9 < np.ptp(p["measured"])  # the baseline holds p0; the record falls
     rms = {k: float(np.sqrt(np.mean((p[k] - p["measured"]) ** 2))) for k in ("baseline", "after")}
     assert rms["after"] < 0.1 * rms["baseline"], rms
+    # drawn as figures: how far, and the held-out part's prediction errors; the JSON keeps them out unasked
+    figs = tmp_path / "figs"
+    assert main(["diagnose", str(logs), "--json", str(out), "--plots", str(figs)]) == 0
+    assert "figures: 2 in" in capsys.readouterr().out
+    drawn = sorted(f.name for f in figs.iterdir())
+    assert drawn == ["Ultimaker_020-how_far.png", "Ultimaker_020-trace-Ultimaker_020_held-out_.png"], drawn
+    assert all((figs / f).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for f in drawn)
+    assert "traces" not in json.loads(out.read_text())["reports"]["Ultimaker_020"]
 
 
 def test_cwrr_diagnose_names_a_channel_that_reads_one_value_throughout(tmp_path: Path,

@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 
 
-def _plt() -> Any:
+def pyplot() -> Any:
+    """matplotlib's pyplot on the Agg backend (files only: a server has no screen)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -29,7 +30,7 @@ def friction_curve_plot(data: Any, result: Any, path: str | Path) -> Path:
         result: The matching fitted result.
         path: Output PNG.
     """
-    plt = _plt()
+    plt = pyplot()
     rotary = hasattr(result, "ccw")
     pairs = ((("ccw", result.ccw), ("cw", result.cw)) if rotary
              else (("extension", result.extension), ("retraction", result.retraction)))
@@ -54,14 +55,14 @@ def friction_curve_plot(data: Any, result: Any, path: str | Path) -> Path:
     ax.legend(fontsize=8)
     title = f"Rotary friction at P_w = {result.pw_bar:g} bar" if rotary else "Linear friction"
     ax.set_title(title)
-    return _save(fig, plt, path)
+    return save_figure(fig, plt, path)
 
 
 def friction_surface_plot(table: Any, path: str | Path) -> Path:
     """Friction torque surfaces T_f(ω, P_w) for CCW and CW (Figure 4.12)."""
     from app.engine.ident.fitting import stribeck
 
-    plt = _plt()
+    plt = pyplot()
     pw = np.asarray(table.pw_bar)
     fig = plt.figure(figsize=(10, 4.2))
     for i, (name, sgn) in enumerate((("CCW", 1.0), ("CW", -1.0))):
@@ -77,12 +78,12 @@ def friction_surface_plot(table: Any, path: str | Path) -> Path:
         ax.set_ylabel("P_w [bar]")
         ax.set_zlabel("T_f [N·m]")
         ax.set_title(f"{name}")
-    return _save(fig, plt, path)
+    return save_figure(fig, plt, path)
 
 
 def cpr_plot(estimator: Any, path: str | Path) -> Path:
     """CPR a(u) per supply pressure for filling and exhausting (Figure 4.2)."""
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, mode in zip(axes, ("filling", "exhausting"), strict=True):
         mm = estimator.params_.get(mode)
@@ -95,14 +96,14 @@ def cpr_plot(estimator: Any, path: str | Path) -> Path:
         ax.set_title(f"Port 2, {mode}")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
-    return _save(fig, plt, path)
+    return save_figure(fig, plt, path)
 
 
 def flow_fit_plot(estimator: Any, data: Any, path: str | Path, signals: tuple[float, ...] = (4.7, 5.0, 5.3)) -> Path:
     """Measured mass flow against chamber pressure with the fitted new model (Figures 4.3–4.4)."""
     from app.engine.ident.dcv import measured_flow
 
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(2, len(signals), figsize=(4 * len(signals), 7), squeeze=False)
     for r, mode in enumerate(("filling", "exhausting")):
         mm = estimator.params_.get(mode)
@@ -123,12 +124,12 @@ def flow_fit_plot(estimator: Any, data: Any, path: str | Path, signals: tuple[fl
             ax.set_ylabel("ṁ [g/s]")
             ax.grid(True, alpha=0.3)
             ax.legend(fontsize=7)
-    return _save(fig, plt, path)
+    return save_figure(fig, plt, path)
 
 
 def validation_plot(cases: list[Any], path: str | Path, models: tuple[str, ...] = ("new", "standard")) -> Path:
     """Measured vs predicted P_a for each validation run (Figures 4.6–4.11)."""
-    plt = _plt()
+    plt = pyplot()
     n = len(cases)
     cols = 3
     rows = max(1, (n + cols - 1) // cols)
@@ -145,10 +146,11 @@ def validation_plot(cases: list[Any], path: str | Path, models: tuple[str, ...] 
         ax.legend(fontsize=6)
     for j in range(n, rows * cols):
         axes[j // cols][j % cols].set_visible(False)
-    return _save(fig, plt, path)
+    return save_figure(fig, plt, path)
 
 
-def _save(fig: Any, plt: Any, path: str | Path) -> Path:
+def save_figure(fig: Any, plt: Any, path: str | Path) -> Path:
+    """Write ``fig`` to ``path`` (PNG, 110 dpi) and close it."""
     path = Path(path)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -160,7 +162,7 @@ def autotune_plot(result: dict[str, Any], path: str | Path) -> Path:
     """Estimated plant response with the tuned loop, and the testing stage's steps (Figure 3.40)."""
     from app.engine.ident.pid_tune import pidf
 
-    plt = _plt()
+    plt = pyplot()
     frf, tun = result["frf"], result["tuning"]
     fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(14, 4))
     w = np.exp(np.linspace(np.log(frf.w.min()), np.log(frf.w.max()), 300))
@@ -185,4 +187,4 @@ def autotune_plot(result: dict[str, Any], path: str | Path) -> Path:
     a3.set_title("pressure step, testing stage")
     a3.grid(True, alpha=0.3)
     a3.legend(fontsize=7)
-    return _save(fig, plt, path)
+    return save_figure(fig, plt, path)

@@ -155,9 +155,9 @@ def fit_seals(paths: list[Path]) -> dict[str, Any]:
 
 def seal_plot(result: dict[str, Any], path: str | Path) -> Path:
     """F_c and B against pressure, one line per seal."""
-    from app.engine.ident.plots import _plt
+    from app.engine.ident.plots import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.2))
     for seal, s in result["seals"].items():
         order = np.argsort(s["p_bar"])
