@@ -540,6 +540,57 @@ def test_traces_show_each_held_out_log_over_time_under_the_baseline_and_the_verd
     assert "traces" not in core.diagnose(_SlopeOrOffset(), exps[:1], exps[1:])
 
 
+class _Follows(_Line):
+    """y = a·x, with the commands x and u as the inputs whose cross-correlation with the residual is read."""
+
+    def inputs(self, p: Experiment) -> dict[str, np.ndarray]:
+        return {"x": p.inputs["x"], "u": p.inputs["u"]}
+
+
+def test_where_names_the_input_a_residual_follows_and_how_much_later() -> None:
+    """y = 2x + 0.5·u(t − 70 ms): the baseline's residual is u, 7 samples (70 ms) later, and (all but chance's
+    share of) nothing of x."""
+    rng = np.random.default_rng(5)
+    exps = []
+    for k in range(2):
+        x, u = rng.uniform(-1.0, 1.0, 3000), rng.standard_normal(3000)
+        y = 2.0 * x + 0.5 * np.concatenate([np.zeros(7), u[:-7]]) + rng.normal(0.0, 0.01, x.size)
+        exps.append(Experiment(f"e{k}", np.arange(x.size) * 0.01, {"x": x, "u": u}, {"y": y}, {}))
+    (w,) = core.diagnose(_Follows(), exps[:1], exps[1:])["where"]
+    xc = w["input_xcorr"]
+    assert xc["u"]["significant"] and xc["u"]["lag_samples"] == 7 and xc["u"]["lag_s"] == pytest.approx(0.07)
+    assert xc["u"]["max_abs"] > 0.9  # the residual is u, delayed (the noise is 1/50 of it)
+    # x's largest over 50 lags is chance's (4σ on this draw: 3/√n over 50 lags is no family-wise test)
+    assert xc["x"]["max_abs"] < 0.1, xc["x"]
+
+
+def test_an_input_is_not_called_significant_for_a_slow_residual_it_does_not_drive() -> None:
+    """A step command held 2 s at a time and a slow residual (AR(1), 0.99 per sample) drawn apart: each is far
+    fewer independent samples than n, and the white-noise error 1/√n called them correlated. With Bartlett's
+    error and a test over the 50 lags, the pair is called significant in at most 2 of 20 draws, and the
+    same residual with 0.3 × the command added 14 samples later in at least 18 (17 and 0 of 20 before and
+    after on this draw, and all 20 driven ones)."""
+    rng = np.random.default_rng(8)
+    n, old_rule, null, driven = 20000, 0, 0, 0
+    for _ in range(20):
+        u = np.repeat(rng.choice([0.0, 2.0, 4.0, 6.0], n // 200), 200)
+        e = rng.standard_normal(n)
+        r = np.empty(n)
+        r[0] = e[0]
+        for i in range(1, n):
+            r[i] = 0.99 * r[i - 1] + e[i]
+        r /= r.std()
+        x = core.input_xcorr(u, r)
+        assert x is not None
+        old_rule += x["max_abs"] > 3.0 / np.sqrt(n)
+        null += x["significant"]
+        d = core.input_xcorr(u, r + 0.3 * np.concatenate([np.zeros(14), u[:-14]]))
+        assert d is not None and d["lag_samples"] == 14
+        driven += d["significant"]
+    assert null <= 2 and driven >= 18, (null, driven)
+    assert old_rule >= 15, old_rule  # what the report said before (3 × 1/√n)
+
+
 @pytest.mark.parametrize(("truth", "levels", "outcome"), [
     ("offset", 0, "offset alone"),  # x sweeps [−1, 1]: near 0 an offset shows and a per-sign slope does not
     ("per_sign", 0, "dropped"),  # the per-sign slope explains more, and the offset adds nothing beside it

@@ -185,7 +185,10 @@ class Where(_Open):
         autocorr_lag1_10: Residual autocorrelation at lags 1–10.
         ljung_box_p: Ljung–Box whiteness p-value.
         regimes: RMS (and samples) per regime: standstill, motion onset/reversal, speed bands, transients, levels.
-        input_xcorr: Largest cross-correlation of the residual with each input.
+        input_xcorr: Per input (a command, the speed), the residual's largest cross-correlation with it over
+            lags 0–49 scored samples: ``max_abs``, ``lag_samples``, ``lag_s`` [s], its standard error ``se``
+            for two autocorrelated series (Bartlett) and ``significant`` (past 3.29 of them: 5 % over the 50
+            lags). An error that follows a command a fixed time later points at what that command drives.
         experiments: Per held-out log, its RMS and its share of the channel's squared error.
     """
 

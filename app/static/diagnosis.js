@@ -327,8 +327,17 @@ function show(rep) {
       `<td>${fmt(c.gap_closure_ci90[0])} … ${fmt(c.gap_closure_ci90[1])}</td><td>${fmt(c.rebased_gap_closure)}</td><td>${fmt(c.delta_bic)}</td><td>${c.significant ? 'yes' : 'no'}${c.dropped_for ? ` (not the verdict: ${c.dropped_for.join(', ')} explains more)` : ''}${!c.significant && (c.not_significant_because || []).length ? ` <small class="why">(${esc(c.not_significant_because.join("; "))})</small>` : c.switched_off ? ' (its fit left it switched off)' : ''}</td>` +
       `<td>${Object.entries(c.params).map(([k, v]) => `${k.split('.')[1]} = ${fmt(v)}`).join(', ')}</td></tr>`).join('');
   const regimes = [...new Set(rep.where.flatMap(w => Object.keys(w.regimes)))];
-  $('where').innerHTML = `<tr><th>Channel</th><th>RMS</th><th title="the RMS the sensor's noise alone leaves a right model (at standstill the torque's cancels)">noise floor</th><th>Ljung–Box p</th>${regimes.map(r => `<th>${r}</th>`).join('')}</tr>` +
-    rep.where.map(w => `<tr><td>${w.channel}</td><td>${fmt(w.rms)}</td><td>${fmt(w.floor ?? w.noise)}</td><td>${fmt(w.ljung_box_p)}</td>` +
+  // the input the residual follows most (a significant correlation only): an error that follows a command
+  // a fixed time later points at what that command drives
+  const follows = w => {
+    const xs = Object.entries(w.input_xcorr || {}).filter(([, x]) => x.significant).sort((a, b) => b[1].max_abs - a[1].max_abs);
+    if (!xs.length) return '—';
+    const [name, x] = xs[0], lag = typeof x.lag_s === 'number' ? `${fmt(x.lag_s)} s` : `${x.lag_samples} samples`;
+    const all = xs.map(([n, y]) => `${n} ${fmt(y.max_abs)}`).join(', ');
+    return `<span title="significant: ${esc(all)}">${esc(name)} ${fmt(x.max_abs)} <small class="why">(${lag} later)</small></span>`;
+  };
+  $('where').innerHTML = `<tr><th>Channel</th><th>RMS</th><th title="the RMS the sensor's noise alone leaves a right model (at standstill the torque's cancels)">noise floor</th><th>Ljung–Box p</th><th title="the input the residual correlates with most, and how much later (|r| over lags 0–49 scored samples)">follows input</th>${regimes.map(r => `<th>${r}</th>`).join('')}</tr>` +
+    rep.where.map(w => `<tr><td>${w.channel}</td><td>${fmt(w.rms)}</td><td>${fmt(w.floor ?? w.noise)}</td><td>${fmt(w.ljung_box_p)}</td><td>${follows(w)}</td>` +
       regimes.map(r => `<td>${w.regimes[r] ? fmt(w.regimes[r].rms) : '—'}</td>`).join('') + '</tr>').join('');
   const logs = [...new Set(rep.where.flatMap(w => Object.keys(w.experiments || {})))];
   $('where-logs').innerHTML = `<tr><th>Log</th>${rep.where.map(w => `<th>${w.channel}</th>`).join('')}</tr>` +
