@@ -743,6 +743,7 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#detail")).to_contain_text("Held out: hold_closed-2")
     # each channel's RMS beside the floor the bars are read against, not the bare sensor noise
     expect(page.locator("#where tr").first).to_contain_text("noise floor")
+    expect(page.locator("#where tr").first).to_contain_text("follows input")  # the input a residual follows
     # what the recalibration made of each nominal value, in the engine's words
     expect(page.locator("#recal")).to_contain_text("chamber dead volumes × nominal")
     expect(page.locator("#recal tr")).to_have_count(14)  # a header and the rotary rig's 13 parameters

@@ -332,9 +332,11 @@ function show(rep) {
   const follows = w => {
     const xs = Object.entries(w.input_xcorr || {}).filter(([, x]) => x.significant).sort((a, b) => b[1].max_abs - a[1].max_abs);
     if (!xs.length) return '—';
-    const [name, x] = xs[0], lag = typeof x.lag_s === 'number' ? `${fmt(x.lag_s)} s` : `${x.lag_samples} samples`;
+    const [name, x] = xs[0];
+    const lag = typeof x.lag_s === 'number' ? `${Math.round(1000 * x.lag_s)} ms` : `${x.lag_samples} samples`;
     const all = xs.map(([n, y]) => `${n} ${fmt(y.max_abs)}`).join(', ');
-    return `<span title="significant: ${esc(all)}">${esc(name)} ${fmt(x.max_abs)} <small class="why">(${lag} later)</small></span>`;
+    return `<span style="white-space:nowrap" title="|r| of each input past the test: ${esc(all)}">${esc(name)} ${fmt(x.max_abs)}</span>` +
+      `<br><small class="why">${lag} later</small>`;
   };
   $('where').innerHTML = `<tr><th>Channel</th><th>RMS</th><th title="the RMS the sensor's noise alone leaves a right model (at standstill the torque's cancels)">noise floor</th><th>Ljung–Box p</th><th title="the input the residual correlates with most, and how much later (|r| over lags 0–49 scored samples)">follows input</th>${regimes.map(r => `<th>${r}</th>`).join('')}</tr>` +
     rep.where.map(w => `<tr><td>${w.channel}</td><td>${fmt(w.rms)}</td><td>${fmt(w.floor ?? w.noise)}</td><td>${fmt(w.ljung_box_p)}</td><td>${follows(w)}</td>` +
