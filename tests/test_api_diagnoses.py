@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 from pathlib import Path
 from typing import Any
@@ -212,3 +213,25 @@ def test_a_running_diagnosis_is_stopped_on_request_and_the_next_one_may_start(tm
     finally:
         store.close()
     assert last is not None and last["result"]["error"].endswith("(the server stopped)")
+
+
+def test_a_diagnosis_whose_traces_cannot_be_written_is_still_stored(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """A full disk under the traces costs the pictures, not the diagnosis: the report is stored complete."""
+    from app.api.routers import diagnoses
+
+    def full_disk(path: Path, text: str) -> None:
+        raise OSError(28, "No space left on device")
+
+    report = {"verdict": {"effects": []}, "how_far": {"e_before": 0.02, "e_after": 0.02, "e_floor": 0.01,
+                                                      "unexplained_share": 1.0},
+              "traces": {"model": [], "logs": []}}
+    monkeypatch.setattr("app.engine.diagnosis.run.diagnose_dir", lambda *a, **k: json.loads(json.dumps(report)))
+    monkeypatch.setattr(diagnoses, "atomic_write_text", full_disk)
+    store = Store(Settings(data_dir=str(tmp_path)).db_url)
+    rid = store.run_started("diagnosis", {}, "")
+    req = diagnoses.DiagnosisRequest.model_validate({"run_ids": [1, 2]})
+    diagnoses._work(store, rid, req, tmp_path / "logs", [], threading.Event(), threading.Event())
+    run = store.run(rid)
+    assert run is not None and run["status"] == "complete", run
+    assert "traces" not in run["result"] and run["result"]["verdict"] == {"effects": []}

@@ -230,8 +230,12 @@ def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, source
                     shutil.copyfile(src.with_suffix(suffix), logdir / (src.stem + suffix))
         report = diagnose_dir(logdir, adapter="station", held_out=req.held_out, stop=stop, bounds=req.bounds,
                               traces=True)
-        # ≈ 10⁵ numbers: beside the logs, not in the run's result, which every listing of runs carries
-        atomic_write_text(traces_path(logdir), strict_json(report.pop("traces")))
+        # ≈ 10⁵ numbers: beside the logs, not in the run's result, which every listing of runs carries;
+        # a disk that cannot take them costs the pictures, not the diagnosis (its traces then answer 404)
+        try:
+            atomic_write_text(traces_path(logdir), strict_json(report.pop("traces")))
+        except OSError:
+            log.exception("diagnosis %d: its traces could not be kept", run_id)
         v = report["verdict"]
         hf = report["how_far"]
         # metrics are numbers (the runs table's contract); the verdict's names are in the report
