@@ -109,7 +109,8 @@ def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestCli
     for lg in t["logs"]:
         assert 2 <= len(lg["t"]) <= 300 and set(lg["channels"]) == {w["channel"] for w in rep["where"]}
         for series in lg["channels"].values():
-            assert set(series) == {"measured", "baseline", "after"}
+            assert set(series) - {"confusable"} == {"measured", "baseline", "after"}
+            assert set(series.get("confusable", {})) == set(t["confusable"])
             assert len(series["measured"]) == len(series["baseline"]) == len(series["after"]) == len(lg["t"])
 
     def rms(log: dict[str, Any], channel: str, key: str) -> float:

@@ -540,6 +540,41 @@ def test_traces_show_each_held_out_log_over_time_under_the_baseline_and_the_verd
     assert "traces" not in core.diagnose(_SlopeOrOffset(), exps[:1], exps[1:])
 
 
+class _TwoOffsets(_Line):
+    """y = a·x plus one of two candidates that each add a constant: the data cannot tell them apart."""
+
+    candidates: tuple[str, ...] = ("sensor_bias", "supply_droop")
+
+    def effect(self, name: str) -> list[Param]:
+        return [Param(f"{name}.c", 0.0, -1.0, 1.0, "-")]
+
+    def predict(self, p: Experiment, x: dict[str, float], effects: tuple[str, ...]) -> dict[str, np.ndarray]:
+        return {"y": x["a"] * p.inputs["x"] + sum(x[f"{e}.c"] for e in effects)}
+
+
+def test_traces_add_what_each_confusable_effect_alone_predicts() -> None:
+    """Two effects the data cannot tell apart: the traces show the other one's prediction beside the verdict's,
+    where a researcher sees that (and where) they agree."""
+    rng = np.random.default_rng(6)
+    exps = []
+    for k in range(2):
+        x = rng.uniform(-1.0, 1.0, 2000)
+        exps.append(Experiment(f"e{k}", np.arange(x.size) * 0.01, {"x": x},
+                               {"y": 2.0 * x + 0.3 + rng.normal(0.0, 0.01, x.size)}, {}))
+    r = core.diagnose(_TwoOffsets(), exps[:1], exps[1:], with_traces=True)
+    (won,), alike = r["verdict"]["effects"], r["verdict"]["confusable_with"]
+    assert len(alike) == 1 and {won, *alike} == {"sensor_bias", "supply_droop"}, r["verdict"]
+    tr = r["traces"]
+    assert tr["model"] == [won] and tr["confusable"] == alike
+    y = tr["logs"][0]["channels"]["y"]
+    other = np.array(y["confusable"][alike[0]], dtype=float)
+    after, base = np.array(y["after"], dtype=float), np.array(y["baseline"], dtype=float)
+    assert np.max(np.abs(other - after)) < 0.005 < np.min(np.abs(other - base))  # the same, and not the baseline
+    # none confusable: no such entry
+    assert "confusable" not in core.diagnose(_SlopeOrOffset(), exps[:1], exps[1:],
+                                             with_traces=True)["traces"]["logs"][0]["channels"]["y"]
+
+
 class _Follows(_Line):
     """y = a·x, with the commands x and u as the inputs whose cross-correlation with the residual is read."""
 

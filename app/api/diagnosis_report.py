@@ -368,11 +368,14 @@ class ChannelTrace(Documented):
         measured: What the rig's sensor read (the channel's unit: bar abs, N·m, N).
         baseline: What the recalibrated baseline predicts.
         after: What the model the verdict ends with predicts (absent when no effect is significant).
+        confusable: Per effect the verdict cannot tell from its own, what that effect alone predicts
+            (where in time the two differ, if anywhere).
     """
 
     measured: list[Num]
     baseline: list[Num]
     after: list[Num] | None = None
+    confusable: dict[str, list[Num]] = Field(default_factory=dict)
 
 
 class LogTrace(Documented):
@@ -396,9 +399,11 @@ class DiagnosisTraces(Documented):
     Attributes:
         run_id: The diagnosis run they belong to.
         model: The effects the ``after`` series adds to the baseline (empty: none was significant).
+        confusable: The effects whose own predictions are under each channel's ``confusable``.
         logs: One entry per held-out log.
     """
 
     run_id: int
     model: list[str]
+    confusable: list[str] = Field(default_factory=list)
     logs: list[LogTrace]

@@ -392,9 +392,14 @@ function drawTrace() {
   const minus = ys => ys.map((v, i) => v === null || s.measured[i] === null ? null : v - s.measured[i]);
   // values: the measurement a wide grey band underneath, so that a prediction agreeing with it runs inside
   // the band; residuals: each prediction's error, against the band the sensor's noise alone leaves (±floor)
+  // an effect the verdict cannot tell from its own, dashed: where in time the two differ, if anywhere
+  const ALIKE = ['#1f77b4', '#9467bd', '#ff7f0e'];
+  const alike = Object.entries(s.confusable || {}).map(([e, ys], k) =>
+    [`with ${e} alone (confusable)`, residual ? minus(ys) : ys, ALIKE[k % ALIKE.length], 1.3, '5 3']);
   const series = [...(residual ? [] : [['measured', s.measured, '#9aa4ae', 4]]),
                   ['baseline', residual ? minus(s.baseline) : s.baseline, '#b3261e', 1.3],
-                  ...(s.after && model ? [[model, residual ? minus(s.after) : s.after, '#0a7d32', 1.3]] : [])];
+                  ...(s.after && model ? [[model, residual ? minus(s.after) : s.after, '#0a7d32', 1.3]] : []),
+                  ...alike];
   const svg = $('trace'), W = svg.clientWidth || 600, H = 240, l = 52, r = 10, top = 10, bot = 30;
   const ts = lg.t.filter(v => v !== null), vs = series.flatMap(x => x[1]).filter(v => v !== null);
   if (residual && floor) vs.push(-floor, floor);
@@ -416,18 +421,18 @@ function drawTrace() {
   const unit = residual ? (UNIT[ch] || '').replace(' abs', '') : UNIT[ch];
   out += `<text x="${l + 4}" y="${top + 10}">${residual ? 'prediction − measured, ' : ''}${esc(ch)}${unit ? ` [${unit}]` : ''}</text>`;
   // a block no sample of the channel scores (null) breaks its line
-  for (const [, ys, colour, width] of series) {
+  for (const [, ys, colour, width, dash] of series) {
     let d = '', pen = false;
     ys.forEach((v, i) => {
       if (v === null || lg.t[i] === null) { pen = false; return; }
       d += `${pen ? 'L' : 'M'}${X(lg.t[i]).toFixed(1)} ${Y(v).toFixed(1)} `;
       pen = true;
     });
-    out += `<path d="${d}" fill="none" stroke="${colour}" stroke-width="${width}" stroke-linejoin="round"/>`;
+    out += `<path d="${d}" fill="none" stroke="${colour}" stroke-width="${width}" stroke-linejoin="round"${dash ? ` stroke-dasharray="${dash}"` : ''}/>`;
   }
   svg.innerHTML = out;
   svg.dataset.series = series.length;
   const band = residual && floor ? [['▬ ± noise floor', '#9aa4ae']] : [];
-  $('trace-legend').replaceChildren(...[...series.map(([name, , colour]) => [`${name === 'measured' ? '▬' : '—'} ${name}`, colour]),
+  $('trace-legend').replaceChildren(...[...series.map(([name, , colour, , dash]) => [`${name === 'measured' ? '▬' : dash ? '- -' : '—'} ${name}`, colour]),
     ...band].map(([text, colour]) => Object.assign(document.createElement('span'), {textContent: text, style: `color:${colour}`})));
 }

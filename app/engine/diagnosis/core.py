@@ -573,7 +573,7 @@ TRACE_POINTS = 300
 
 
 def traces(family: Family, preps: list[Any], fits: dict[str, Fit], names: list[str],
-           points: int = TRACE_POINTS) -> list[dict[str, Any]]:
+           points: int = TRACE_POINTS, confusable: dict[str, Fit] | None = None) -> list[dict[str, Any]]:
     """Each log's measured channels over time beside the predictions of ``fits``: where in time a gap lies.
 
     Block means of at most ``points`` per series, four significant digits: the report's tables say
@@ -586,6 +586,8 @@ def traces(family: Family, preps: list[Any], fits: dict[str, Fit], names: list[s
         fits: Label → fit (the baseline, the model the verdict ends with).
         names: The logs' names.
         points: Points per series.
+        confusable: Effect → its single fit, for the effects the verdict cannot tell from its own:
+            each channel gets their series under ``confusable`` (where in time they differ, if anywhere).
 
     Returns:
         Per log: ``log``, ``t`` [s from its start] and, per channel, ``measured`` and each label's series.
@@ -605,12 +607,17 @@ def traces(family: Family, preps: list[Any], fits: dict[str, Fit], names: list[s
         size = max(1, math.ceil(len(t) / points))
         meas = family.measured(prep)
         preds = {label: family.predict(prep, f.params, f.effects) for label, f in fits.items()}
-        # a prediction is averaged over the samples its measurement scores, so both means cover the same
-        out.append({"log": name, "t": blocks(t, size),
-                    "channels": {c: {"measured": blocks(meas[c], size)}
-                                 | {label: blocks(np.where(np.isfinite(meas[c]), pr[c], np.nan), size)
-                                    for label, pr in preds.items()}
-                                 for c in family.channels}})
+        others = {label: family.predict(prep, f.params, f.effects) for label, f in (confusable or {}).items()}
+        channels: dict[str, Any] = {}
+        for c in family.channels:
+            # a prediction is averaged over the samples its measurement scores, so both means cover the same
+            seen = np.isfinite(meas[c])
+            channels[c] = {"measured": blocks(meas[c], size)} | {
+                label: blocks(np.where(seen, pr[c], np.nan), size) for label, pr in preds.items()}
+            if others:
+                channels[c]["confusable"] = {label: blocks(np.where(seen, pr[c], np.nan), size)
+                                             for label, pr in others.items()}
+        out.append({"log": name, "t": blocks(t, size), "channels": channels})
     return out
 
 
@@ -1550,8 +1557,10 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     if with_traces:
         # the held-out logs as the baseline and the last effect the verdict kept predict them
         fits = {"baseline": base} | ({"after": selected[-1].fit} if selected else {})
+        alike = {c.effect: c.fit for c in singles if c.effect in confusable}
         extra["traces"] = {"model": list(selected[-1].fit.effects) if selected else [],
-                           "logs": traces(family, held, fits, held_names)}
+                           "confusable": list(alike),
+                           "logs": traces(family, held, fits, held_names, confusable=alike)}
     return extra | {
         "family": family.name,
         "experiments": {"calibration": [getattr(e, "name", "?") for e in calib_exps],

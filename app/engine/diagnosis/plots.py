@@ -60,13 +60,17 @@ def trace_plot(report: dict[str, Any], log: dict[str, Any], path: str | Path) ->
     t = np.array(log["t"], dtype=float)
     fig, axes = plt.subplots(len(chans), 1, figsize=(8, 1.9 * len(chans) + 0.6), sharex=True, squeeze=False)
     for ax, c in zip(axes[:, 0], chans, strict=True):
-        s = {k: np.array(v, dtype=float) for k, v in log["channels"][c].items() if v is not None}
+        s = {k: np.array(v, dtype=float) for k, v in log["channels"][c].items() if k != "confusable"}
         fl = floors.get(c)
         if fl:
             ax.axhspan(-fl, fl, color="#9aa4ae", alpha=0.3, lw=0, label="± noise floor")
         ax.plot(t, s["baseline"] - s["measured"], color="#b3261e", lw=1.1, label="baseline")
         if "after" in s:
             ax.plot(t, s["after"] - s["measured"], color="#0a7d32", lw=1.1, label=f"with {model}")
+        # an effect the verdict cannot tell from its own: where in time the two differ, if anywhere
+        for k, (effect, ys) in enumerate(log["channels"][c].get("confusable", {}).items()):
+            ax.plot(t, np.array(ys, dtype=float) - s["measured"], color=("#1f77b4", "#9467bd", "#ff7f0e")[k % 3],
+                    lw=1.1, ls="--", label=f"with {effect} alone (confusable)")
         ax.set_ylabel(f"{c} [{UNITS.get(c, '-')}]")
         ax.grid(True, alpha=0.3)
     axes[0, 0].set_title(f"{log['log']}: prediction − measured")
