@@ -443,7 +443,7 @@ $('estop').addEventListener('click', () => pressEstop(render));
 
 async function poll() {
   try { render(await api('GET', '/api/engine')); }
-  catch (e) { $('state').textContent = e.status === 401 || e.status === 403 ? 'sign in' : 'server not reachable'; }
+  catch (e) { showNoState(e.status === 401 || e.status === 403 ? 'sign in' : 'server not reachable'); }
 }
 
 document.querySelectorAll('[data-action]').forEach(b => b.addEventListener('click', async () => {

@@ -14,12 +14,22 @@ function authHeaders() {
   return t ? {'Authorization': `Bearer ${t}`} : {};
 }
 
+// when an E-STOP press went unconfirmed [ms since the page loaded]: its warning stays in the header for
+// 5 s, not overwritten by the next poll's state, unless that state shows the fault latched after all
+let estopUnconfirmedAt = -Infinity;
+
 // the engine's state in the header; STOP where the engine has something to stop (E-STOP is never disabled)
 function showEngineState(st) {
+  $('stop').disabled = !st.allowed.includes('stop');
+  if (st.state !== 'fault' && performance.now() - estopUnconfirmedAt < 5000) return;
   const s = $('state');
   s.textContent = st.state;
   s.className = st.state;
-  $('stop').disabled = !st.allowed.includes('stop');
+}
+
+// why the header has no state to show (no answer, no sign-in), unless an E-STOP warning is being held
+function showNoState(text) {
+  if (performance.now() - estopUnconfirmedAt >= 5000) $('state').textContent = text;
 }
 
 // press E-STOP; `shown` draws the status the station answers with (the page's own renderer, if it has one)
@@ -27,7 +37,9 @@ async function pressEstop(shown = showEngineState) {
   const r = await fetch('/api/engine/estop', {method: 'POST', headers: authHeaders()}).catch(() => null);
   if (r && r.ok) { shown(await r.json()); return; }
   const why = r ? ((await r.json().catch(() => ({}))).detail || r.statusText) : 'the station does not answer';
+  estopUnconfirmedAt = performance.now();
   $('state').textContent = 'E-STOP NOT CONFIRMED: ' + why;
+  $('state').className = 'fault';
 }
 
 // a page without its own engine poll: keep the header's state current (one request at a time, each
@@ -45,9 +57,9 @@ function watchEngine(periodMs = 1000) {
     try {
       const r = await fetch('/api/engine', {headers: authHeaders(), signal: AbortSignal.timeout(10000)});
       if (r.ok) showEngineState(await r.json());
-      else $('state').textContent = r.status === 401 || r.status === 403 ? 'sign in' : 'station error';
+      else showNoState(r.status === 401 || r.status === 403 ? 'sign in' : 'station error');
     } catch (e) {
-      $('state').textContent = 'server not reachable';
+      showNoState('server not reachable');
     } finally {
       setTimeout(tick, Math.max(0, periodMs - (performance.now() - t)));
     }
