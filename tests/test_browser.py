@@ -1090,6 +1090,9 @@ def test_the_diagnosis_page_shows_the_engine_and_stops_it_from_its_header(statio
         assert box is not None and 0 <= box["y"] and box["y"] + box["height"] <= 800, box
         page.click("#estop")
         expect(page.locator("#state")).to_have_text("fault")
+        # what latched it, on the badge: the diagnosis page has no other place to say it
+        expect(page.locator("#state")).to_have_attribute(
+            "title", "emergency stop (API): latched until cleared on the Station page")
         st = _call(base, "GET", "/api/engine")
         assert st["state"] == "fault" and st["fault"] == "emergency stop (API)", st
         expect(page.locator("#stop")).to_be_disabled()

@@ -25,6 +25,8 @@ function showEngineState(st) {
   const s = $('state');
   s.textContent = st.state;
   s.className = st.state;
+  // what latched a fault, on the badge itself (the diagnosis page has no other place to say it)
+  s.title = st.state === 'fault' ? `${st.fault || 'a fault'}: latched until cleared on the Station page` : '';
 }
 
 // why the header has no state to show (no answer, no sign-in), unless an E-STOP warning is being held
