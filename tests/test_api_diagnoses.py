@@ -150,6 +150,10 @@ def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestCli
     assert r.status_code == 409 and r.json()["detail"] == (
         f"diagnosis {old}'s stored report does not fit the schema (how_far: Field required); "
         f"GET /api/runs/{old} has it as stored")
+    stopped = store.run_started("diagnosis", {}, "")
+    store.run_finished(stopped, "cancelled", None, {"error": "stopped on request"})
+    r = client.get(f"/api/diagnoses/{stopped}/traces")
+    assert r.status_code == 409 and r.json()["detail"] == f"diagnosis {stopped} is cancelled: stopped on request"
     r = client.get(f"/api/diagnoses/{old}/traces")  # stored before the station kept traces
     assert r.status_code == 404 and r.json()["detail"] == (
         f"diagnosis {old} has no traces (it was stored before the station kept them)")

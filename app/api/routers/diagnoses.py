@@ -340,7 +340,9 @@ def traces(run_id: IdPath, store: StoreDep, request: Request) -> DiagnosisTraces
     if r["kind"] != "diagnosis":
         raise HTTPException(404, f"run {run_id} is not a gap diagnosis (its kind: {r['kind']})")
     if r["status"] != "complete":
-        raise HTTPException(409, f"diagnosis {run_id} is {r['status']}; its traces come when it is complete")
+        why = (r["result"] or {}).get("error")
+        raise HTTPException(409, f"diagnosis {run_id} is {r['status']}" + (f": {why}" if why else "")
+                            + ("; its traces come when it is complete" if r["status"] == "running" else ""))
     path = traces_path(logdir_of(Path(request.app.state.station.data_dir), run_id))
     if not path.is_file():
         raise HTTPException(404, f"diagnosis {run_id} has no traces (it was stored before the station kept them)")
