@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import Depends, Path, Request
+from fastapi import Depends, HTTPException, Path, Request
 from fastapi.exceptions import RequestValidationError
 
 from app.api.jobs import Jobs
@@ -35,6 +35,23 @@ StoreDep = Annotated[Store, Depends(get_store)]
 JobsDep = Annotated[Jobs, Depends(get_jobs)]
 IdPath = Annotated[int, Path(ge=1, le=2**62, description="stored id")]
 """A stored row's id (bounded so no database sees an integer it cannot hold)."""
+
+
+def completed_diagnosis(store: Store, run_id: int, comes: str) -> dict[str, Any]:
+    """Stored run ``run_id``, which must be a complete gap diagnosis (404 or 409 saying why not).
+
+    ``comes`` is what a running one's refusal promises, e.g. ``"report comes"``.
+    """
+    r = store.run(run_id)
+    if r is None:
+        raise HTTPException(404, f"run {run_id} does not exist")
+    if r["kind"] != "diagnosis":
+        raise HTTPException(404, f"run {run_id} is not a gap diagnosis (its kind: {r['kind']})")
+    if r["status"] != "complete":
+        why = (r["result"] or {}).get("error")
+        raise HTTPException(409, f"diagnosis {run_id} is {r['status']}" + (f": {why}" if why else "")
+                            + (f"; its {comes} when it is complete" if r["status"] == "running" else ""))
+    return r
 
 
 def _query_names(dependant: Any) -> frozenset[str]:

@@ -21,7 +21,7 @@ from fastapi import APIRouter, HTTPException, Request
 from pydantic import Field
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ
-from app.api.deps import IdPath, JobsDep, StoreDep
+from app.api.deps import IdPath, JobsDep, StoreDep, completed_diagnosis
 from app.api.diagnosis_report import DiagnosisTraces
 from app.api.jobs import JobRefused
 from app.api.models import Documented, RunInfo
@@ -334,15 +334,7 @@ def traces(run_id: IdPath, store: StoreDep, request: Request) -> DiagnosisTraces
     (`GET /api/runs/{id}/report`) says how large the residuals are per channel, regime and log; these say
     when they arise. Kept beside the diagnosis's logs; a diagnosis stored before the station kept them
     answers 404."""
-    r = store.run(run_id)
-    if r is None:
-        raise HTTPException(404, f"run {run_id} does not exist")
-    if r["kind"] != "diagnosis":
-        raise HTTPException(404, f"run {run_id} is not a gap diagnosis (its kind: {r['kind']})")
-    if r["status"] != "complete":
-        why = (r["result"] or {}).get("error")
-        raise HTTPException(409, f"diagnosis {run_id} is {r['status']}" + (f": {why}" if why else "")
-                            + ("; its traces come when it is complete" if r["status"] == "running" else ""))
+    completed_diagnosis(store, run_id, "traces come")
     path = traces_path(logdir_of(Path(request.app.state.station.data_dir), run_id))
     if not path.is_file():
         raise HTTPException(404, f"diagnosis {run_id} has no traces (it was stored before the station kept them)")

@@ -17,7 +17,7 @@ from fastapi.responses import FileResponse, Response
 from pydantic import Field, ValidationError
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ, THERAPIST
-from app.api.deps import IdPath, StoreDep
+from app.api.deps import IdPath, StoreDep, completed_diagnosis
 from app.api.diagnosis_report import DiagnosisReport
 from app.api.models import Documented, NotesIn, PersonFilter, RunInfo, Series
 from app.engine.params import ParameterError
@@ -87,13 +87,7 @@ def run_detail(run_id: IdPath, store: StoreDep) -> RunInfo:
 def diagnosis_report(run_id: IdPath, store: StoreDep) -> DiagnosisReport:
     """The same report as the run's `result`, validated against `DiagnosisReport` so that a client can be
     generated from the schema: baseline, ranking, verdict, where the gap lies, how far it shrinks."""
-    r = _get(store, run_id)
-    if r["kind"] != "diagnosis":
-        raise HTTPException(404, f"run {run_id} is not a gap diagnosis (its kind: {r['kind']})")
-    if r["status"] != "complete":
-        why = (r["result"] or {}).get("error")
-        raise HTTPException(409, f"diagnosis {run_id} is {r['status']}" + (f": {why}" if why else "")
-                            + ("; its report comes when it is complete" if r["status"] == "running" else ""))
+    r = completed_diagnosis(store, run_id, "report comes")
     try:
         return DiagnosisReport.model_validate(r["result"] | {"run_id": run_id})
     except ValidationError as exc:  # a report stored by an older engine, without a field the schema needs
