@@ -114,7 +114,7 @@ function showLast(lr) {
   const r = lr.result || {};
   // the station's last run carries its number and metrics only: what it was comes with the stored run
   drawTrace(lr.run_id, lr.run).then(run => {
-    const what = document.getElementById(`last-what-${lr.run_id}`);
+    const what = $(`last-what-${lr.run_id}`);
     if (what && run && run.kind === 'workout' && run.spec) {
       what.textContent = ` (${exerciseWhat(run.spec)}${run.person ? ', ' + run.person : ''})`;
     }
