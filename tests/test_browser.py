@@ -309,6 +309,25 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     assert titles[1].startswith("run 8,") and "SC-2" in titles[1] and titles[2].startswith("run 9,"), titles
     expect(page.locator("#progress-chart")).to_contain_text("SC-2")  # the legend: a colour per scenario
     page.unroute("**/api/runs?kind=workout*")
+    # a station that does not answer is said so where the answer would show (its requests had failed as
+    # uncaught errors, the history and the form left as they were): the history, the identification form
+    page.route("**/api/runs?limit=*", lambda route: route.abort())
+    page.locator("#hist-person").dispatch_event("change")
+    expect(page.locator("#hist-msg")).to_have_text(
+        "The run history could not be loaded: the station did not answer (is it running?)")
+    expect(page.locator("#hist-msg")).to_have_class("msg bad")
+    page.unroute("**/api/runs?limit=*")
+    page.locator("#hist-person").dispatch_event("change")
+    expect(page.locator("#hist-msg")).to_have_text("runs 1–1 of P-007")
+    page.route("**/api/forms/*", lambda route: route.abort())
+    page.click("#ident-clear")
+    expect(page.locator("#ident-msg")).to_have_text(
+        "The form could not be checked: the station did not answer (is it running?)")
+    expect(page.locator("#estimate")).to_be_disabled()
+    page.unroute("**/api/forms/*")
+    page.click("#ident-clear")
+    expect(page.locator("#f-rom_deg")).to_be_visible()
+    expect(page.locator("#ident-msg")).not_to_contain_text("could not be checked")
     # a run picked in the history shows its result where the last one shows, fetched from the store
     page.evaluate("document.getElementById('last').textContent = ''")
     page.evaluate("(() => { const c = document.getElementById('c-trace'); c.hidden = true; c.dataset.run = ''; })()")
@@ -691,6 +710,13 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
         page.fill(f"[data-bound=dead_volume_scale][data-end='{end}']", "")
     page.fill("[data-bound=gain_a][data-end='1']", "")
     page.unroute("**/api/diagnoses")
+    # a station that does not answer is said so, not left as an uncaught "Failed to fetch" and a button
+    # that did nothing
+    page.route("**/api/diagnoses", lambda route: route.abort())
+    page.click("#go")
+    expect(page.locator("#msg")).to_have_text(
+        "the station did not answer POST /api/diagnoses (is it running?)")
+    page.unroute("**/api/diagnoses")
     page.select_option("#src", "files")
     expect(page.locator("#logfiles")).to_be_visible()
     page.set_input_files("#logfiles", good[:1])
@@ -736,10 +762,17 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#rscale-note")).to_be_visible()
     expect(page.locator("#rscale-note")).to_contain_text("A protocol 0.2 × as long pins the model's nominal values")
     page.fill("#rperson", "P-021")
+    # the protocol's progress is read off the header's poll of the engine, not off a second poll of its own
+    polls: list[float] = []
+    page.on("request", lambda q: polls.append(time.monotonic()) if q.url == base + "/api/engine" else None)
     page.click("#go")
     expect(page.locator("#msg")).to_contain_text("hold_closed, repetition", timeout=15_000)
+    t_proto = time.monotonic()
     expect(page.locator("#rstop")).to_be_visible()
     expect(page.locator("#msg")).to_contain_text("diagnosis", timeout=60_000)
+    # one a second (the page's own poll had doubled that: 20 in 10 s)
+    elapsed, during = time.monotonic() - t_proto, [t for t in polls if t >= t_proto]
+    assert len(during) <= 1.25 * elapsed + 2, (len(during), elapsed)
     expect(page.locator("#verdict")).not_to_have_text("—", timeout=120_000)
     expect(page.locator("#detail")).to_contain_text("Held out: hold_closed-2")
     # each channel's RMS beside the floor the bars are read against, not the bare sensor noise

@@ -15,9 +15,18 @@ function fieldName(f) { return FIELD_NAMES[f] || f; }
 
 async function api(method, path, body) {
   // a read that never answers (a half-open connection) must not stall the poll that made it
-  const r = await fetch(path, {method, headers: {'Content-Type': 'application/json', ...authHeaders()},
-                               body: body === undefined ? undefined : JSON.stringify(body),
-                               signal: method === 'GET' ? AbortSignal.timeout(10000) : undefined});
+  let r;
+  try {
+    r = await fetch(path, {method, headers: {'Content-Type': 'application/json', ...authHeaders()},
+                           body: body === undefined ? undefined : JSON.stringify(body),
+                           signal: method === 'GET' ? AbortSignal.timeout(10000) : undefined});
+  } catch (e) {
+    // the browser's own words ("Failed to fetch", "NetworkError when…") say nothing to a therapist
+    const err = new Error(e.name === 'TimeoutError' ? 'the station did not answer within 10 s'
+                                                    : 'the station did not answer (is it running?)');
+    err.status = 0;
+    throw err;
+  }
   const data = await r.json().catch(() => ({}));
   if (r.status === 401) { $('signin').hidden = false; }
   if (!r.ok) {
@@ -426,7 +435,9 @@ async function whoami() {
 $('signin-btn').addEventListener('click', async () => {
   sessionStorage.setItem('cwrr-token', $('token').value.trim());
   $('token').value = '';
-  const a = await whoami();
+  let a;
+  try { a = await whoami(); }
+  catch (e) { sessionStorage.removeItem('cwrr-token'); $('who').textContent = `not signed in: ${e.message}`; return; }
   if (a.role === null) { sessionStorage.removeItem('cwrr-token'); $('who').textContent = 'token not accepted'; }
   else { poll(); checkForm(); loadRuns(); loadSets(); showViser(); }
 });
@@ -494,7 +505,13 @@ function identValues() {
 async function checkForm() {
   const v = identValues();
   const rig = identRig;
-  const st = await api('POST', `/api/forms/${rig}`, {values: v});
+  let st;
+  try { st = await api('POST', `/api/forms/${rig}`, {values: v}); }
+  catch (e) {
+    // unchecked, the form is not ready: Run identification stays off until the station answers
+    if (rig === identRig) { say('ident-msg', `The form could not be checked: ${e.message}`, false); identReady = false; render(status); }
+    return;
+  }
   const box = $('ident-fields');
   if (rig !== identRig) return;  // the rig changed while the form was being checked
   $('ident-title').textContent = `Friction identification (${rig === 'rotary' ? 'rotary, forearm robot' : 'linear test cylinder'})`;
@@ -601,7 +618,9 @@ async function loadRuns() {
   }
   const q = new URLSearchParams({limit: PAGE + 1, offset: histOffset, with_result: false});  // a click fetches one
   if (who) q.set('person', who);
-  const page = await api('GET', `/api/runs?${q}`);
+  let page;
+  try { page = await api('GET', `/api/runs?${q}`); }
+  catch (e) { $('hist-msg').className = 'msg bad'; $('hist-msg').textContent = `The run history could not be loaded: ${e.message}`; return; }
   const runs = page.slice(0, PAGE);
   $('hist-older').disabled = page.length <= PAGE; $('hist-newer').disabled = histOffset === 0;
   $('hist-msg').className = 'msg';
@@ -766,7 +785,8 @@ $('runs').addEventListener('click', async ev => {
   const a = ev.target.closest('a[download]');
   if (!a || !sessionStorage.getItem('cwrr-token')) return;
   ev.preventDefault();
-  const r = await fetch(a.href, {headers: authHeaders()});
+  const r = await fetch(a.href, {headers: authHeaders()}).catch(() => null);
+  if (!r) { $('who').textContent = 'export failed: the station did not answer'; return; }
   if (!r.ok) { $('who').textContent = `export refused (${r.status})`; return; }
   const name = (r.headers.get('content-disposition') || '').match(/filename="?([^";]+)/);
   const url = URL.createObjectURL(await r.blob());

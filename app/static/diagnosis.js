@@ -55,13 +55,18 @@ fetch('/api/auth', {headers: authHeaders()}).then(r => r.json()).then(a => {
     : 'This station needs a token: sign in with an admin token on the Station page to run a gap diagnosis.',
     'bad');
 }).catch(() => {});
-$('go').onclick = async () => {
+// a request the station never answered, said as such (the browser's own words are "Failed to fetch")
+class NoAnswer extends Error {}
+const send = (url, init = {}) => fetch(url, {...init, headers: {...(init.headers || {}), ...authHeaders()}})
+  .catch(() => { throw new NoAnswer(`the station did not answer ${init.method || 'GET'} ${url} (is it running?)`); });
+$('go').onclick = () => go().catch(e => { if (e instanceof NoAnswer) say(e.message, 'bad'); else throw e; });
+async function go() {
   // the server checks the ranges before anything runs: one refused only when the diagnosis is posted
   // would come after the rig's protocol
   const bounds = ranges();
   if (bounds) {
-    const r = await fetch('/api/diagnoses/bounds', {method: 'POST',
-      headers: {'content-type': 'application/json', ...authHeaders()}, body: JSON.stringify({bounds})});
+    const r = await send('/api/diagnoses/bounds', {method: 'POST',
+      headers: {'content-type': 'application/json'}, body: JSON.stringify({bounds})});
     if (!r.ok) { say(await refusal(r), 'bad'); return; }
   }
   let body;
@@ -80,12 +85,12 @@ $('go').onclick = async () => {
     body = {run_ids: $('runids').value.split(',').map(s => s.trim()).filter(Boolean).map(Number)};
   }
   if (bounds) body.bounds = bounds;
-  const r = await fetch('/api/diagnoses', {method: 'POST', headers: {'content-type': 'application/json', ...authHeaders()}, body: JSON.stringify(body)});
+  const r = await send('/api/diagnoses', {method: 'POST', headers: {'content-type': 'application/json'}, body: JSON.stringify(body)});
   if (!r.ok) { say(await refusal(r), 'bad'); return; }
   const j = await r.json();
   say(`diagnosis ${j.run_id} running (roughly 15–30 s per 83 s of logs on a 2-core station)…`);
   poll(j.run_id);
-};
+}
 // what a refused request says (FastAPI's list of field errors, or one message)
 async function refusal(r) {
   const j = await r.json().catch(() => ({}));
@@ -107,7 +112,7 @@ function ranges() {
 }
 // the protocol on the connected rig through the engine; the stored experiments' run ids, or null and why
 async function onRig() {
-  const post = (url, body) => fetch(url, {method: 'POST', headers: {'content-type': 'application/json', ...authHeaders()},
+  const post = (url, body) => send(url, {method: 'POST', headers: {'content-type': 'application/json'},
     body: JSON.stringify(body)});
   const kinds = [...document.querySelectorAll('#rkinds input:checked')].map(c => c.value);
   if (!kinds.length) { say('pick at least one experiment', 'bad'); return null; }
@@ -116,17 +121,17 @@ async function onRig() {
   if (!r.ok) { say(await refusal(r), 'bad'); return null; }
   const j = await r.json();
   $('rstop').hidden = false;
-  $('rstop').onclick = () => post('/api/engine/stop', {});
-  let st = j.status, missed = 0;
+  $('rstop').onclick = () => post('/api/engine/stop', {}).catch(e => say(e.message, 'bad'));  // the header's STOP too
+  // the header's poll follows the engine (engineSeen): only a state asked for after the protocol started counts
+  let st = j.status, since = performance.now();
   while (st.state === 'identifying' || st.state === 'stopping') {
     say(`protocol run ${j.run_id}: ${(st.progress && st.progress.message) || st.state}`);
     await new Promise(ok => setTimeout(ok, 1000));
-    const e = await fetch('/api/engine', {headers: authHeaders()}).catch(() => null);
-    if (e && e.ok) { st = await e.json(); missed = 0; }
-    else if (++missed >= 30) { say(`the station has not answered for 30 s; protocol run ${j.run_id} may still be running`, 'bad'); return null; }
+    if (engineSeen.sent > since) { st = engineSeen.state; since = engineSeen.sent; }
+    else if (performance.now() - since > 30000) { say(`the station has not answered for 30 s; protocol run ${j.run_id} may still be running`, 'bad'); return null; }
   }
   $('rstop').hidden = true;
-  const run = await (await fetch(`/api/runs/${j.run_id}`, {headers: authHeaders()})).json();
+  const run = await (await send(`/api/runs/${j.run_id}`)).json();
   const ids = (run.result && run.result.run_ids) || [];
   if (run.status !== 'finished' || ids.length < 2) {
     say(`protocol run ${j.run_id} ended ${run.status}${st.fault ? ' (' + st.fault + ')' : ''} with ${ids.length} complete experiment log(s); ` +
@@ -153,7 +158,7 @@ async function upload(files) {
     say(`uploading ${stem} (${i + 1} of ${stems.length})…`);
     let meta;
     try { meta = JSON.parse(await byStem[stem].json.text()); } catch (e) { say(`${stem}.json: not valid JSON`, 'bad'); return null; }
-    const r = await fetch('/api/runs', {method: 'POST', headers: {'content-type': 'application/json', ...authHeaders()},
+    const r = await send('/api/runs', {method: 'POST', headers: {'content-type': 'application/json'},
       body: JSON.stringify({name: stem, meta, csv: await byStem[stem].csv.text()})});
     if (!r.ok) { say(`${stem}: ` + await refusal(r), 'bad'); return null; }
     ids.push((await r.json()).id);

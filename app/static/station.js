@@ -44,6 +44,10 @@ async function pressEstop(shown = showEngineState) {
   $('state').className = 'fault';
 }
 
+// the last state watchEngine's poll read, and when that request was sent [ms since the page loaded]:
+// what else on the page follows the engine reads it here rather than polling the station a second time
+let engineSeen = {state: null, sent: -Infinity};
+
 // a page without its own engine poll: keep the header's state current (one request at a time, each
 // given up after 10 s: a half-open connection must not freeze the state shown next to E-STOP)
 function watchEngine(periodMs = 1000) {
@@ -58,7 +62,7 @@ function watchEngine(periodMs = 1000) {
     const t = performance.now();
     try {
       const r = await fetch('/api/engine', {headers: authHeaders(), signal: AbortSignal.timeout(10000)});
-      if (r.ok) showEngineState(await r.json());
+      if (r.ok) { const st = await r.json(); engineSeen = {state: st, sent: t}; showEngineState(st); }
       else showNoState(r.status === 401 || r.status === 403 ? 'sign in' : 'station error');
     } catch (e) {
       showNoState('server not reachable');
