@@ -187,8 +187,10 @@ class Where(_Open):
         regimes: RMS (and samples) per regime: standstill, motion onset/reversal, speed bands, transients, levels.
         input_xcorr: Per input (a command, the speed), the residual's largest cross-correlation with it over
             lags 0–49 scored samples: ``max_abs``, ``lag_samples``, ``lag_s`` [s], its standard error ``se``
-            for two autocorrelated series (Bartlett) and ``significant`` (past 3.29 of them: 5 % over the 50
-            lags). An error that follows a command a fixed time later points at what that command drives.
+            for two autocorrelated series (Bartlett), ``z``, the standard errors it had to pass, and
+            ``significant`` (past them: a 5 % test over the 50 lags and every input the channel is tested
+            against, 3.72 for the rotary rig's five). An error that follows a command a fixed time later
+            points at what that command drives.
         experiments: Per held-out log, its RMS and its share of the channel's squared error.
     """
 

@@ -675,7 +675,7 @@ def where(family: Family, preps: list[Any], f: Fit, floor: np.ndarray,
                 entry["regimes"][k] = {"rms": float(np.sqrt(np.nanmean(r[mk] ** 2))), "bias": float(np.nanmean(r[mk])),
                                        "n": int(mk.sum()), "share": float(mk.mean())}
         for k, vs in ins.items():
-            xc = input_xcorr(np.concatenate(vs), r)
+            xc = input_xcorr(np.concatenate(vs), r, inputs=len(ins))
             if xc is not None:
                 entry["input_xcorr"][k] = xc | {"lag_s": xc["lag_samples"] * dt}
         out.append(entry)
@@ -685,7 +685,17 @@ def where(family: Family, preps: list[Any], f: Fit, floor: np.ndarray,
 XCORR_LAGS = 50
 """Lags [scored samples] over which a residual's cross-correlation with an input is read (the residual later)."""
 XCORR_Z = float(stats.norm.isf(0.05 / 2.0 / XCORR_LAGS))
-"""Standard errors a cross-correlation must pass: a 5 % test over all :data:`XCORR_LAGS` lags (Bonferroni, 3.29)."""
+"""Standard errors a cross-correlation must pass: a 5 % test over all :data:`XCORR_LAGS` lags of one input
+(Bonferroni, 3.29); :func:`input_xcorr` raises it for a channel tested against several inputs."""
+
+
+def xcorr_z(inputs: int = 1, lags: int = XCORR_LAGS) -> float:
+    """Standard errors a cross-correlation must pass for a 5 % test over ``lags`` lags of ``inputs`` inputs.
+
+    One channel's residual is tested against each input: at 5 % per input, the chance of naming one it does
+    not follow is up to 23 % per channel of five (Bonferroni over both: 3.29 for one input, 3.72 for five).
+    """
+    return float(stats.norm.isf(0.05 / 2.0 / (max(1, lags) * max(1, inputs))))
 
 
 def _acf(z: np.ndarray, lags: int) -> np.ndarray:
@@ -696,10 +706,11 @@ def _acf(z: np.ndarray, lags: int) -> np.ndarray:
     return a / a[0] if a[0] > 0 else np.zeros(lags + 1)
 
 
-def input_xcorr(u: np.ndarray, r: np.ndarray, lags: int = XCORR_LAGS) -> dict[str, Any] | None:
+def input_xcorr(u: np.ndarray, r: np.ndarray, lags: int = XCORR_LAGS, inputs: int = 1) -> dict[str, Any] | None:
     """The residual ``r``'s largest cross-correlation with input ``u`` over lags 0…``lags``−1 (``r`` later).
 
-    Significant when it passes a 5 % test over all the lags (:data:`XCORR_Z` standard errors), with the
+    Significant when it passes a 5 % test over all the lags and the ``inputs`` the residual is tested
+    against (:func:`xcorr_z` standard errors; :data:`XCORR_Z` for one), with the
     standard error of two autocorrelated series (Bartlett 1946: var ≈ (1/n)·Σ_j ρ_u(j)·ρ_r(j)). A step
     command and a slow residual are each far fewer independent samples than n: the white-noise error
     1/√n, and 3 of them at the largest of 50 lags, which the report used before, called a slow residual
@@ -709,9 +720,12 @@ def input_xcorr(u: np.ndarray, r: np.ndarray, lags: int = XCORR_LAGS) -> dict[st
     Args:
         u: The input, sample by sample.
         r: The residual on the same samples (NaN where unscored).
+        lags: Lags read [samples].
+        inputs: How many inputs the same residual is tested against (the test is family-wise over them).
 
     Returns:
-        ``max_abs``, ``lag_samples``, ``se`` and ``significant``; None when either series is constant.
+        ``max_abs``, ``lag_samples``, ``se``, ``z`` (the standard errors it had to pass) and
+        ``significant``; None when either series is constant.
     """
     ok = np.isfinite(r)
     if np.std(u) == 0 or ok.sum() < 10 or not np.nanstd(r) > 0:
@@ -724,7 +738,8 @@ def input_xcorr(u: np.ndarray, r: np.ndarray, lags: int = XCORR_LAGS) -> dict[st
     m = max(1, min(n // 10, 2000))
     var = (1.0 + 2.0 * float(np.sum(_acf(du, m)[1:] * _acf(np.where(ok, rr, 0.0), m)[1:]))) / ok.sum()
     se = math.sqrt(max(var, 1.0 / ok.sum()))
-    return {"max_abs": abs(xc[j]), "lag_samples": j, "se": se, "significant": abs(xc[j]) > XCORR_Z * se}
+    z = xcorr_z(inputs, lags)
+    return {"max_abs": abs(xc[j]), "lag_samples": j, "se": se, "z": z, "significant": abs(xc[j]) > z * se}
 
 
 @dataclass
