@@ -589,9 +589,15 @@ def test_the_viser_publisher_never_sends_nan(live_plots: tuple[Any, Any, int]) -
             pad = h.padding
             assert pad is not None and pad[0] > 0 and pad[3] > 0, pad
         # a handle at rest reads 0 rad/s, which uPlot would range over 0 … 100: held at ±1 rad/s or more
-        scales: Any = plots.h_speed.scales
-        y = scales["y"]["range"]
-        assert (y["min"]["soft"], y["min"]["mode"], y["max"]["soft"], y["max"]["mode"]) == (-1.0, 1, 1.0, 1)
+        # and an idle rig's sensor noise fills neither the torque's nor the pressures' height (the dashboard's spans)
+        for h, lo, hi in ((plots.h_speed, -1.0, 1.0), (plots.h_torque, -0.2, 0.2), (plots.h_press, 1.0, 1.2)):
+            scales: Any = h.scales
+            y = scales["y"]["range"]
+            assert (y["min"]["soft"], y["min"]["mode"], y["max"]["soft"], y["max"]["mode"]) == (lo, 1, hi, 1)
+            assert scales["x"] == {"time": False}
+        # tall enough in viser's 300-px panel for a labelled gridline under each value: at 2:1 a torque from −0.5 to
+        # 1.3 N·m had read "0" alone, the pressures 1–4 bar "2" and "4"
+        assert plots.h_torque.aspect <= 1.5 and plots.h_press.aspect <= 1.5
         assert np.asarray(plots.h_torque.data[2])[-1] == 1.2 and np.asarray(plots.h_press.data[2])[0] == 2.9
         # no new sample, nothing sent: an idle station costs the viewers nothing
         sent: list[object] = []

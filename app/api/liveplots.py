@@ -37,8 +37,18 @@ PADDING: tuple[int, int, int, int] = (10, 24, 0, 14)
 # A handle at rest reads exactly 0 rad/s (the encoder's steps), and uPlot ranges an all-zero series
 # over 0 … 100: a speed axis to 100 rad/s. Soft limits (uPlot's RangeConfig, mode 1: kept unless the
 # data reach past them) hold it at ±1 rad/s at least.
-SPEED_SCALES: dict[str, Any] = XSCALE | {"y": {"range": {"min": {"soft": -1.0, "mode": 1, "pad": 0.1},
-                                                        "max": {"soft": 1.0, "mode": 1, "pad": 0.1}}}}
+def _soft_y(lo: float, hi: float) -> dict[str, Any]:
+    """A y axis that spans at least ``lo`` … ``hi`` and grows past them with the data."""
+    return XSCALE | {"y": {"range": {"min": {"soft": lo, "mode": 1, "pad": 0.1},
+                                     "max": {"soft": hi, "mode": 1, "pad": 0.1}}}}
+
+
+SPEED_SCALES = _soft_y(-1.0, 1.0)
+# The same for the torque and the pressures, at the dashboard's own spans (±0.2 N·m; from the atmosphere,
+# 1 … 1.2 bar abs): an idle rig's sensor noise, ±0.02 N·m and 0.01 bar, had filled each chart's height,
+# the pressures under one labelled gridline
+TORQUE_SCALES = _soft_y(-0.2, 0.2)
+PRESSURE_SCALES = _soft_y(1.0, 1.2)
 
 
 def _series(label: str, color: str, dash: bool = False) -> Any:
@@ -89,13 +99,14 @@ class LivePlots:
         self.h_torque = gui.add_uplot(data=(np.zeros(2), np.zeros(2), np.zeros(2)),
                                       series=({"label": "t [s]"}, _series("T_i [N·m]", "#1f77b4"),
                                               _series("target [N·m]", "#d62728", dash=True)),
-                                      title="Interaction torque vs target", aspect=2.0, scales=XSCALE, padding=PADDING)
+                                      title="Interaction torque vs target", aspect=1.5, scales=TORQUE_SCALES,
+                                      padding=PADDING)
         self.h_press = gui.add_uplot(data=(np.zeros(2),) * 5,
                                      series=({"label": "t [s]"}, _series("P_a [bar]", "#2ca02c"),
                                              _series("P_a ref [bar]", "#2ca02c", dash=True),
                                              _series("P_b [bar]", "#9467bd"),
                                              _series("P_b ref [bar]", "#9467bd", dash=True)),
-                                     title="Chamber pressures vs references", aspect=2.0, scales=XSCALE,
+                                     title="Chamber pressures vs references", aspect=1.5, scales=PRESSURE_SCALES,
                                      padding=PADDING)
         self.h_speed = gui.add_uplot(data=z, series=({"label": "t [s]"}, _series("ω [rad/s]", "#ff7f0e")),
                                      title="Speed", aspect=2.5, scales=SPEED_SCALES, padding=PADDING)
