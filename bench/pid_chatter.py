@@ -29,17 +29,13 @@ from typing import Any
 import numpy as np
 
 from app.engine.ident.pid_tune import AutotuneSpec, autotune_sim
+from app.engine.metrics import toggle_amplitude
 from app.engine.scenarios import main_cases, run_case
 
 BANDS_RAD = (0.0, 0.1, 0.3, 0.5, 0.7, 1.0, np.inf)
 """Edges of the |θ| bands [rad]."""
 
 Gains = tuple[tuple[float, float, float], tuple[float, float, float]]
-
-
-def toggle_amplitude(p: np.ndarray) -> np.ndarray:
-    """Period-2 amplitude at each inner sample [bar]: |second difference| / 4."""
-    return np.abs(p[2:] - 2.0 * p[1:-1] + p[:-2]) / 4.0
 
 
 def autotuned(seed: int) -> Gains:

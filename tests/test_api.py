@@ -197,6 +197,11 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
     assert 0.0 < m["mae"] < 0.3, m
     assert run["result"]["t_engage_s"] is not None
     assert run["result"]["window_s"][1] > run["result"]["window_s"][0]
+    # Eq 3.26's gains toggle the counter chamber every period as the vane turns towards it: the run says so
+    toggle = run["result"]["pressure_toggle_bar"]
+    assert toggle["p_b"] > 0.02 > toggle["p_a"], toggle
+    (warning,) = run["result"]["warnings"]
+    assert warning.startswith("Chamber b's pressure toggled every control period (±") and "gains" in warning
     ser = client.get(f"/api/runs/{run_id}/series", params={"every": 10}).json()
     full = client.get(f"/api/runs/{run_id}/series").json()
     assert ser["columns"][0] == "t" and len(ser["rows"]) == -(-len(full["rows"]) // 10)

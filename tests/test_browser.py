@@ -340,11 +340,17 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     # a metric the run could not give is stored as null: it reads "–" (its toPrecision had thrown, the panel empty)
     with urllib.request.urlopen(f"{base}/api/runs/{run_id}", timeout=10) as r:
         stored = json.loads(r.read())
+    # and what the station noticed about the run (here as a run whose pressure loop chattered would carry it)
+    # is said under its metrics
+    warning = "Chamber b's pressure toggled every control period (±0.24 bar, median over the scored window): …"
     page.route(f"**/api/runs/{run_id}", lambda route: route.fulfill(
-        json={**stored, "metrics": {**stored["metrics"], "evar": None}}))
+        json={**stored, "metrics": {**stored["metrics"], "evar": None},
+              "result": {**stored["result"], "warnings": [warning]}}))
     page.evaluate("document.getElementById('last').textContent = ''")
     page.locator("#runs tbody tr").first.locator("td").nth(2).click()
     expect(page.locator("#metrics tr").nth(3)).to_have_text("e_var [N²·m²]–")
+    expect(page.locator(f"#last-warn-{run_id}")).to_have_text(warning)
+    expect(page.locator(f"#last-warn-{run_id}")).to_have_class("msg bad")
     expect(page.locator("#hist-msg")).not_to_contain_text(f"run {run_id}:")
     page.unroute(f"**/api/runs/{run_id}")
 

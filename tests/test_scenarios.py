@@ -14,7 +14,7 @@ import pytest
 
 from app.cli import main
 from app.engine import metrics as mt
-from app.engine.control.config import ControllerConfig
+from app.engine.control.config import ControllerConfig, ControllerName
 from app.engine.human import HumanProgram, isotonic
 from app.engine.scenarios import Case, ScenarioSettings, ablation_cases, main_cases, run_case
 from app.engine.sim import run_workout
@@ -32,6 +32,32 @@ def test_metrics_golden_values() -> None:
     assert mt.rmse(t, e) == pytest.approx(math.sqrt(6.0 / 4.0))
     assert mt.maxae(t, e) == pytest.approx(2.0)
     assert set(mt.all_metrics(t, e)) == set(mt.METRICS)
+
+
+def test_a_pressure_toggled_every_period_is_measured_and_a_slow_one_is_not() -> None:
+    t = np.arange(400) * 0.005
+    square = 3.0 + 0.2 * (-1.0) ** np.arange(400)  # ±0.2 bar every 5 ms
+    ramp = 2.0 + 0.5 * t + 0.1 * np.sin(2 * np.pi * 2.0 * t)  # a fill and a 2 Hz swing: no toggle
+    assert mt.toggle_amplitude(square) == pytest.approx(np.full(398, 0.2))
+    assert mt.pressure_toggle(t, square, (0.5, 1.5)) == pytest.approx(0.2)
+    ramp_toggle = mt.pressure_toggle(t, ramp, (0.0, 2.0))
+    assert ramp_toggle is not None and ramp_toggle < 1e-3
+    assert mt.pressure_toggle(t, square, (5.0, 6.0)) is None  # no sample in the window
+
+
+@pytest.mark.parametrize(("controller", "loud"), [("pid", True), ("fuzzy", False), ("default", False)])
+def test_only_the_thesiss_pid_gains_toggle_a_chamber_past_the_warning(controller: ControllerName, loud: bool) -> None:
+    """The warning's threshold sits between the controllers that do not chatter on the simulated rig (≤ 0.005
+    bar) and the Cascade PID with Eq 3.26's gains, whose counter chamber toggles by 0.24 bar in SC-1 (its
+    loop gain grows as that chamber shrinks: docs/controllers.md)."""
+    case = next(c for c in main_cases() if c.scenario == "SC-1" and c.target == 1.2)
+    run = run_case(case, controller, seed=0)
+    res = run.result
+    toggles = [mt.pressure_toggle(res.column("t"), res.column(c), run.window) or 0.0 for c in ("p_a", "p_b")]
+    if loud:
+        assert toggles[1] > 5 * mt.TOGGLE_WARN_BAR and toggles[0] < mt.TOGGLE_WARN_BAR, toggles
+    else:
+        assert max(toggles) < mt.TOGGLE_WARN_BAR / 3, toggles
 
 
 def test_metrics_itae_is_relative_to_window_start() -> None:

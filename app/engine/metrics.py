@@ -71,3 +71,30 @@ def all_metrics(t: np.ndarray, e: np.ndarray) -> dict[str, float]:
     """All six, keyed as in :data:`METRICS`."""
     return {"mae": mae(t, e), "iae": iae(t, e), "itae": itae(t, e), "evar": evar(t, e),
             "rmse": rmse(t, e), "maxae": maxae(t, e)}
+
+
+TOGGLE_WARN_BAR = 0.02
+"""Period-2 toggle of a chamber pressure [bar, median over the scored window] past which a run says so.
+
+On the simulated rig, Default and Fuzzy leave ≤ 0.0053 bar in every main case (the sensors' noise alone gives
+≈ 0.0012), and the Cascade PID with the thesis's Eq 3.26 gains 0.07–0.38 bar in its counter chamber
+(docs/controllers.md, "With a plant that answers within one 5 ms tick")."""
+
+
+def toggle_amplitude(p: np.ndarray) -> np.ndarray:
+    """Period-2 amplitude of a sampled pressure at each inner sample [bar]: |P[k+1] − 2P[k] + P[k−1]| / 4.
+
+    A ±A square wave at the sample rate has second differences of ±4A; a slow change has none.
+
+    Args:
+        p: Pressure samples, one per control period [bar].
+    """
+    p = np.asarray(p, dtype=float)
+    return np.abs(p[2:] - 2.0 * p[1:-1] + p[:-2]) / 4.0
+
+
+def pressure_toggle(t: np.ndarray, p: np.ndarray, window: tuple[float, float]) -> float | None:
+    """Median period-2 toggle of ``p`` [bar] over the samples of ``t`` [s] inside ``window`` [s]; None if under 3."""
+    t, amp = np.asarray(t, dtype=float), toggle_amplitude(p)
+    inside = (t[1:-1] >= window[0]) & (t[1:-1] <= window[1])
+    return float(np.median(amp[inside])) if inside.any() else None

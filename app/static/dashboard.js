@@ -127,12 +127,15 @@ function showLast(lr) {
     if (what && run && run.kind === 'workout' && run.spec) {
       what.textContent = ` (${exerciseWhat(run.spec)}${run.person ? ', ' + run.person : ''})`;
     }
+    // what the station noticed about the run (a chamber's pressure loop chattering), under its metrics
+    const warn = $(`last-warn-${lr.run_id}`), ws = run && run.result && run.result.warnings;
+    if (warn && Array.isArray(ws) && ws.length) { warn.textContent = ws.join(' '); warn.hidden = false; }
   });
   if (lr.metrics) {
     const part = r.partial ? ` — scored over the ${(r.window_s[1] - r.window_s[0]).toFixed(1)} s reached before the stop` : '';
     $('last').innerHTML = `<p>Exercise ${esc(lr.run_id)}<span id="last-what-${esc(lr.run_id)}"></span>: ${esc(lr.status)}${esc(part)}</p><table id="metrics">` +
       Object.entries(METRICS).map(([k, l]) => `<tr><td>${l}</td><td>${fmt(lr.metrics[k], 4)}</td></tr>`).join('') +  // null: a metric the run could not give
-      '</table>';
+      `</table><p id="last-warn-${esc(lr.run_id)}" class="msg bad" hidden></p>`;
   } else if (r.parameters && ('filling' in r.parameters || 'exhausting' in r.parameters)) {
     showValve(lr);
   } else if (r.parameters && 'ki' in r.parameters) {
