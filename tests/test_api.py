@@ -202,6 +202,7 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
     assert toggle["p_b"] > 0.02 > toggle["p_a"], toggle
     (warning,) = run["result"]["warnings"]
     assert warning.startswith("Chamber b's pressure toggled every control period (±") and "gains" in warning
+    assert st["last_run"]["warnings"] == [warning]  # with the metrics wherever the last run shows (viser)
     ser = client.get(f"/api/runs/{run_id}/series", params={"every": 10}).json()
     full = client.get(f"/api/runs/{run_id}/series").json()
     assert ser["columns"][0] == "t" and len(ser["rows"]) == -(-len(full["rows"]) // 10)
@@ -577,8 +578,10 @@ def test_the_viser_publisher_never_sends_nan(live_plots: tuple[Any, Any, int]) -
             st.live.append((k * 0.005, 0.01 * k, tgt, 2.9, 3.1, ref, ref, 0.1, 0.2))
         # nobody watching: the charts are not encoded at all, but a finished run's metrics are
         # drawn when it ends (not later, mid-exercise, for a viewer who connects then)
-        st.last_run = {"run_id": 7, "status": "complete", "metrics": {"mae": 0.05, "evar": None}}
+        st.last_run = {"run_id": 7, "status": "complete", "metrics": {"mae": 0.05, "evar": None},
+                       "warnings": ["Chamber b's pressure toggled every control period (±0.24 bar, …)."]}
         plots.publish()
+        assert plots.h_metrics.content.endswith(f"**Note:** {st.last_run['warnings'][0]}")
         assert np.asarray(plots.h_torque.data[0]).size == 2  # still the placeholder built at start-up
         assert "Run 7" in plots.h_metrics.content and "| e_var [N²·m²] | – |" in plots.h_metrics.content
         assert "| MAE [N·m] | 0.05 |" in plots.h_metrics.content

@@ -205,7 +205,8 @@ class LivePlots:
         rows = "\n".join(f"| {METRIC_LABELS.get(k, k)} | {'–' if v is None else format(v, '.4g')} |"
                          for k, v in m.items())
         head = f"**Run {last.get('run_id')}** ({last.get('status')})"
-        self.h_metrics.content = f"{head}\n\n| metric | value |\n|---|---|\n{rows}"
+        notes = "".join(f"\n\n**Note:** {w}" for w in last.get("warnings") or ())
+        self.h_metrics.content = f"{head}\n\n| metric | value |\n|---|---|\n{rows}{notes}"
         values = self._latest_per_controller(last.get("run_id"))
         if values:
             self.h_radar.image = radar_image(values)

@@ -152,7 +152,8 @@ class EngineStatus(Documented):
         rig: The connected rig (kind, cylinder).
         fault: The latched fault's message.
         progress: Progress of the current work.
-        last_run: How the last run ended (id, status, metrics or result).
+        last_run: How the last run ended (id, status, metrics or result, and the ``warnings`` its result
+            carries, e.g. a chamber's pressure toggling every control period).
         safety: The safety supervisor: ``fault`` (code, message, t [s],
             channel, or null), ``no_action`` (the soft ROM limit is holding the
             vane), ``faults_total`` and the ``limits`` in force.

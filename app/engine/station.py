@@ -1150,6 +1150,8 @@ class Station:
             log.close(status, metrics=metrics)
         self._store_end(status, metrics, result)
         self.last_run = {"run_id": self._run_id, "status": status, "metrics": metrics}
+        if result.get("warnings"):  # shown with the metrics wherever they are (the dashboard, viser)
+            self.last_run["warnings"] = list(result["warnings"])
         self._job, self._log = None, None
         if self._state != State.FAULT:
             self._state = State.IDLE
