@@ -8,6 +8,8 @@ of the window (the thesis evaluates "from convergence, or from t_d").
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 METRICS: tuple[str, ...] = ("mae", "iae", "itae", "evar", "rmse", "maxae")
@@ -98,3 +100,30 @@ def pressure_toggle(t: np.ndarray, p: np.ndarray, window: tuple[float, float]) -
     t, amp = np.asarray(t, dtype=float), toggle_amplitude(p)
     inside = (t[1:-1] >= window[0]) & (t[1:-1] <= window[1])
     return float(np.median(amp[inside])) if inside.any() else None
+
+
+def toggle_report(t: np.ndarray, p_a: np.ndarray, p_b: np.ndarray, window: tuple[float, float]) -> dict[str, Any]:
+    """Each chamber's period-2 toggle over the scored window [bar] and, past :data:`TOGGLE_WARN_BAR`, a warning.
+
+    A pressure loop whose gains are too high for the rig's valves toggles its chamber every control period:
+    the arm feels a buzz at half the control rate and the metrics carry it. Said in the run's result, where
+    the therapist (the dashboard, viser), a script and ``cwrr sim`` read it.
+
+    Args:
+        t: Sample times, one per control period [s].
+        p_a: Chamber a's measured pressure [bar abs].
+        p_b: Chamber b's measured pressure [bar abs].
+        window: The scored window [s], on ``t``'s clock.
+
+    Returns:
+        ``pressure_toggle_bar`` per chamber (None without 3 samples in the window) and, when either is past
+        the threshold, ``warnings``: one sentence per such chamber.
+    """
+    toggles = {"p_a": pressure_toggle(t, p_a, window), "p_b": pressure_toggle(t, p_b, window)}
+    out: dict[str, Any] = {"pressure_toggle_bar": toggles}
+    loud = [(c, v) for c, v in toggles.items() if v is not None and v > TOGGLE_WARN_BAR]
+    if loud:
+        out["warnings"] = [f"Chamber {c[-1]}'s pressure toggled every control period (±{v:.2f} bar, median over "
+                           "the scored window): the pressure-loop gains are too high for this rig's valves, and "
+                           "the metrics include that chatter." for c, v in loud]
+    return out

@@ -43,7 +43,7 @@ from app.engine.hardware.base import RIG_KINDS, SAFE_COMMAND, Command, HardwareI
 from app.engine.hardware.config import HardwareConfig, save_config
 from app.engine.hardware.factory import make_factory
 from app.engine.loop import REFREEZE_S, Controller, Engine, Recorder, WallClock, refreeze_heap, settle_heap
-from app.engine.metrics import TOGGLE_WARN_BAR, pressure_toggle
+from app.engine.metrics import toggle_report
 from app.engine.params import ParameterError, PlantParams, SensorParams, check_range
 from app.engine.runlog import RunLogWriter, new_log_name
 from app.engine.safety import RELEASE_S, SafetyLimits, SafetySupervisor, release_command
@@ -1135,7 +1135,7 @@ class Station:
                           "partial": w_end < window[1], "program_start_s": job.t_prog}
                 if w_end - window[0] >= MIN_PARTIAL_WINDOW_S:
                     metrics = m  # a stopped run is scored over the part of the window it reached
-                    result |= _toggle_report(a, (window[0], w_end))
+                    result |= toggle_report(a[:, 0], a[:, 3], a[:, 4], (window[0], w_end))
                 else:
                     result["note"] = (f"stopped {max(w_end - window[0], 0.0):.2f} s into the evaluation window; "
                                       f"metrics need at least {MIN_PARTIAL_WINDOW_S:g} s")
@@ -1218,27 +1218,6 @@ class Station:
         self._stop_engine()
         self._start_engine(self.rate_hz)
         self._state = State.IDLE
-
-
-def _toggle_report(rows: np.ndarray, window: tuple[float, float]) -> dict[str, Any]:
-    """Each chamber's period-2 toggle over the scored window [bar] and, past :data:`TOGGLE_WARN_BAR`, a warning.
-
-    A pressure loop whose gains are too high for the rig's valves toggles its chamber every control period:
-    the arm feels a 100 Hz buzz and the metrics carry it. Said in the run's result, where the therapist and a
-    script read it.
-
-    Args:
-        rows: The run's rows: time since the program's start [s], torque, mode, p_a, p_b [bar abs].
-        window: The scored window [s], on the rows' clock.
-    """
-    toggles = {c: pressure_toggle(rows[:, 0], rows[:, col], window) for c, col in (("p_a", 3), ("p_b", 4))}
-    out: dict[str, Any] = {"pressure_toggle_bar": toggles}
-    loud = [(c, v) for c, v in toggles.items() if v is not None and v > TOGGLE_WARN_BAR]
-    if loud:
-        out["warnings"] = [f"Chamber {c[-1]}'s pressure toggled every control period (±{v:.2f} bar, median over "
-                           "the scored window): the pressure-loop gains are too high for this rig's valves, and "
-                           "the metrics include that chatter." for c, v in loud]
-    return out
 
 
 def _sim_backend(clock: WallClock, period: float, rig: Rig, p_atm_bar: float = P_ATM / BAR) -> HardwareInterface:
