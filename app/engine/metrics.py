@@ -96,7 +96,10 @@ def toggle_amplitude(p: np.ndarray) -> np.ndarray:
 
 
 def pressure_toggle(t: np.ndarray, p: np.ndarray, window: tuple[float, float]) -> float | None:
-    """Median period-2 toggle of ``p`` [bar] over the samples of ``t`` [s] inside ``window`` [s]; None if under 3."""
+    """Median period-2 toggle of ``p`` [bar] over the samples of ``t`` [s] inside ``window`` [s].
+
+    None when no sample with a neighbour on each side lies in the window.
+    """
     t, amp = np.asarray(t, dtype=float), toggle_amplitude(p)
     inside = (t[1:-1] >= window[0]) & (t[1:-1] <= window[1])
     return float(np.median(amp[inside])) if inside.any() else None
@@ -116,7 +119,7 @@ def toggle_report(t: np.ndarray, p_a: np.ndarray, p_b: np.ndarray, window: tuple
         window: The scored window [s], on ``t``'s clock.
 
     Returns:
-        ``pressure_toggle_bar`` per chamber (None without 3 samples in the window) and, when either is past
+        ``pressure_toggle_bar`` per chamber (None when the window holds no inner sample) and, when either is past
         the threshold, ``warnings``: one sentence per such chamber.
     """
     toggles = {"p_a": pressure_toggle(t, p_a, window), "p_b": pressure_toggle(t, p_b, window)}
