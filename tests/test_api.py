@@ -597,8 +597,10 @@ def test_the_viser_publisher_never_sends_nan(live_plots: tuple[Any, Any, int]) -
             pad = h.padding
             assert pad is not None and pad[0] > 0 and pad[3] > 0, pad
         # a handle at rest reads 0 rad/s, which uPlot would range over 0 … 100: held at ±1 rad/s or more
-        # and an idle rig's sensor noise fills neither the torque's nor the pressures' height (the dashboard's spans)
-        for h, lo, hi in ((plots.h_speed, -1.0, 1.0), (plots.h_torque, -0.2, 0.2), (plots.h_press, 1.0, 1.2)):
+        # and an idle rig's sensor noise fills neither the torque's nor the pressures' height (the dashboard's spans),
+        # nor does the error's 0 outside an exercise range over 0 … 100 %
+        for h, lo, hi in ((plots.h_speed, -1.0, 1.0), (plots.h_torque, -0.2, 0.2), (plots.h_press, 1.0, 1.2),
+                          (plots.h_err, -10.0, 10.0)):
             scales: Any = h.scales
             y = scales["y"]["range"]
             assert (y["min"]["soft"], y["min"]["mode"], y["max"]["soft"], y["max"]["mode"]) == (lo, 1, hi, 1)

@@ -49,6 +49,8 @@ SPEED_SCALES = _soft_y(-1.0, 1.0)
 # the pressures under one labelled gridline
 TORQUE_SCALES = _soft_y(-0.2, 0.2)
 PRESSURE_SCALES = _soft_y(1.0, 1.2)
+# and the tracking error, 0 outside an exercise (no target), which uPlot ranged 0 … 100 %
+ERROR_SCALES = _soft_y(-10.0, 10.0)
 
 
 def _series(label: str, color: str, dash: bool = False) -> Any:
@@ -111,7 +113,7 @@ class LivePlots:
         self.h_speed = gui.add_uplot(data=z, series=({"label": "t [s]"}, _series("ω [rad/s]", "#ff7f0e")),
                                      title="Speed", aspect=2.5, scales=SPEED_SCALES, padding=PADDING)
         self.h_err = gui.add_uplot(data=z, series=({"label": "t [s]"}, _series("error [% of target]", "#8c564b")),
-                                   title="Tracking error", aspect=2.5, scales=XSCALE, padding=PADDING)
+                                   title="Tracking error", aspect=2.5, scales=ERROR_SCALES, padding=PADDING)
         self.h_metrics = gui.add_markdown("No finished run yet.")
         # drawn once now, hidden until a run has metrics: matplotlib, its fonts and viser's image
         # encoder load here, before the station freezes its heap, not on the publisher thread
