@@ -44,9 +44,10 @@ def _sim_scenario(args: argparse.Namespace) -> int:
     w0 = time.perf_counter()
     run = run_case(case, args.controller or "pid", seed=args.seed, settings=ScenarioSettings(pw_bar=args.pw))
     wall = time.perf_counter() - w0
-    out: dict[str, object] = {**run.record(), "working_pressure_bar": args.pw, "seed": args.seed,
+    rec = run.record()
+    out: dict[str, object] = {**rec, "working_pressure_bar": args.pw, "seed": args.seed,
                               "sim_s": float(run.result.column("t")[-1]), "wall_s": wall}
-    return _sim_report(args, out, run.result.log, {**run.result.meta, **run.record()})
+    return _sim_report(args, out, run.result.log, {**run.result.meta, **rec})
 
 
 def _sim_report(args: argparse.Namespace, summary: dict[str, object], log: np.ndarray, meta: dict[str, Any]) -> int:

@@ -684,9 +684,6 @@ def where(family: Family, preps: list[Any], f: Fit, floor: np.ndarray,
 
 XCORR_LAGS = 50
 """Lags [scored samples] over which a residual's cross-correlation with an input is read (the residual later)."""
-XCORR_Z = float(stats.norm.isf(0.05 / 2.0 / XCORR_LAGS))
-"""Standard errors a cross-correlation must pass: a 5 % test over all :data:`XCORR_LAGS` lags of one input
-(Bonferroni, 3.29); :func:`input_xcorr` raises it for a channel tested against several inputs."""
 
 
 def xcorr_z(inputs: int = 1, lags: int = XCORR_LAGS) -> float:
@@ -710,7 +707,7 @@ def input_xcorr(u: np.ndarray, r: np.ndarray, lags: int = XCORR_LAGS, inputs: in
     """The residual ``r``'s largest cross-correlation with input ``u`` over lags 0…``lags``−1 (``r`` later).
 
     Significant when it passes a 5 % test over all the lags and the ``inputs`` the residual is tested
-    against (:func:`xcorr_z` standard errors; :data:`XCORR_Z` for one), with the
+    against (:func:`xcorr_z` standard errors: 3.29 for one input), with the
     standard error of two autocorrelated series (Bartlett 1946: var ≈ (1/n)·Σ_j ρ_u(j)·ρ_r(j)). A step
     command and a slow residual are each far fewer independent samples than n: the white-noise error
     1/√n, and 3 of them at the largest of 50 lags, which the report used before, called a slow residual
