@@ -630,6 +630,42 @@ def test_the_viser_publisher_never_sends_nan(live_plots: tuple[Any, Any, int]) -
             viewer.close()
 
 
+def test_the_3d_handle_turns_with_the_measured_angle_between_the_end_stops_the_station_applies(
+        live_plots: tuple[Any, Any, int], tmp_path: Path) -> None:
+    """Issue 5's 3-D view: the handle turns about the shaft by the measured angle, a label gives it in
+    degrees, and the end stops are drawn where the station's safety puts them (±ROM/2, 270° on the
+    thesis's rig, or as a configuration sets it)."""
+    from app.api.liveplots import LivePlots
+    from app.engine.station import Station
+    from tests.conftest import viser_viewer
+
+    def stop_angles(plots: Any) -> list[float]:
+        pts = np.asarray(plots.h_stops.points)  # (stop, end of the tick, xyz); the thumb points along +y at 0
+        return sorted(math.degrees(math.atan2(-x, y)) for x, y in pts[:, 0, :2])  # (viser keeps float32)
+
+    st, plots, port = live_plots
+    assert stop_angles(plots) == pytest.approx([-135.0, 135.0], abs=1e-3)
+    viewer = viser_viewer(port)
+    try:
+        deadline = time.monotonic() + 10
+        while not plots._viewers:
+            assert time.monotonic() < deadline, "the viewer was not counted"
+            time.sleep(0.01)
+        for k, th in enumerate((0.3, -0.5)):  # pronation, then supination
+            st.live.append((2 * k * 0.005, 0.0, 0.5, 2.0, 2.0, 2.0, 2.0, 0.0, th))
+            st.live.append(((2 * k + 1) * 0.005, 0.0, 0.5, 2.0, 2.0, 2.0, 2.0, 0.0, th))
+            plots.publish()
+            np.testing.assert_allclose(plots.h_handle.wxyz, (math.cos(th / 2), 0.0, 0.0, math.sin(th / 2)), atol=1e-12)
+            assert plots.h_angle.text == f"angle: {math.degrees(th):+.0f}°"
+    finally:
+        viewer.close()
+    narrow = LivePlots(Station(data_dir=tmp_path, limits={"rom_deg": 200.0}), "127.0.0.1", free_port())
+    try:
+        assert stop_angles(narrow) == pytest.approx([-100.0, 100.0], abs=1e-3)
+    finally:
+        narrow.stop()
+
+
 def test_the_viser_page_shows_the_station_state_and_its_e_stop_acts_without_a_3d_view(
         live_plots: tuple[Any, Any, int]) -> None:
     """A therapist watching the live plots stops the rig from that page. viser runs a button's

@@ -16,6 +16,7 @@ import numpy as np
 from viser._messages import GuiUpdateMessage
 
 from app.engine.metrics import METRIC_LABELS, METRICS
+from app.engine.safety import SafetyLimits
 from app.engine.station import LIVE_COLUMNS, Station
 
 PUBLISH_HZ = 25.0  # issue 5: 20–30 Hz
@@ -24,6 +25,7 @@ WINDOW_S = 10.0
 # receive 2.4 MB/s (20 viewers: 54 MB/s through the server's event loop).
 MAX_POINTS = 400
 HANDLE_STEP_RAD = 1e-3  # the 3-D handle is re-posed (and every viewer re-renders) only on a larger turn
+ARC_RADIUS_M = 0.11  # the range of motion is drawn just outside the handle's 9 cm half-length
 
 _COL = {c: i for i, c in enumerate(LIVE_COLUMNS)}
 ESTOP_HINT = ("Emergency stop: vent both chambers within one control period, from any state; "
@@ -122,13 +124,51 @@ class LivePlots:
         self.h_radar = gui.add_image(radar_image({"pid": dict.fromkeys(METRICS, 1.0)}),
                                      label="Metrics radar (this run, and each other controller's latest complete run "
                                            "for the same person, scenario and target)", visible=False)
+        self._build_scene()
+
+    def _build_scene(self) -> None:
+        """The handle on its shaft, over the range it may turn through.
+
+        The grip turns about the shaft (z), its thumb end (the sphere) up at
+        neutral. Under it: the range of motion between the end stops (red),
+        the no-action zone inside each (orange), and which way is pronation.
+        A label on the shaft gives the measured angle in degrees.
+        """
         scene = self.server.scene
         scene.add_frame("/rig", show_axes=False)
         scene.add_box("/rig/base", color=(120, 120, 130), dimensions=(0.12, 0.12, 0.06), position=(0.0, 0.0, -0.05))
-        self.h_handle = scene.add_box("/rig/handle", color=(30, 110, 200), dimensions=(0.03, 0.18, 0.03))
+        self.h_handle = scene.add_frame("/rig/handle", show_axes=False)
+        scene.add_box("/rig/handle/grip", color=(30, 110, 200), dimensions=(0.03, 0.18, 0.03))
+        scene.add_icosphere("/rig/handle/thumb", radius=0.018, color=(240, 200, 40), position=(0.0, 0.09, 0.0))
+        self.h_angle = scene.add_label("/rig/angle", "angle: –", position=(0.0, 0.0, 0.06))
         # the handle is 18 cm long: start the camera close enough to see it turn
         self.server.initial_camera.position = (0.28, -0.32, 0.30)
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
+        # the rotary rig's limits as the station's safety applies them (a configuration may move them)
+        lim = SafetyLimits.for_rig("rotary", **self.station.limit_overrides)
+        if lim.rom_deg is None:  # configured without angle checks: no range to draw
+            return
+        half = math.radians(lim.rom_deg / 2.0)
+        soft = half - math.radians(lim.soft_margin_deg)
+        r, z = ARC_RADIUS_M, -0.018
+
+        def on_arc(phi: np.ndarray) -> np.ndarray:  # the thumb's direction at angle phi (CCW from +y)
+            return np.stack([-r * np.sin(phi), r * np.cos(phi), np.full_like(phi, z)], axis=-1)
+
+        def segments(a: float, b: float) -> np.ndarray:
+            pts = on_arc(np.linspace(a, b, max(2, int(abs(b - a) / 0.05) + 1)))
+            return np.stack([pts[:-1], pts[1:]], axis=1)
+
+        scene.add_line_segments("/rig/range", segments(-soft, soft), (150, 150, 150), thickness=0.003)
+        scene.add_line_segments(
+            "/rig/no_action", np.concatenate([segments(soft, half), segments(-half, -soft)]), (240, 150, 30),
+            thickness=0.005)
+        stops = np.array([[on_arc(np.array([a]))[0] * k for k in (0.85, 1.15)] for a in (-half, half)])
+        stops[..., 2] = z
+        self.h_stops = scene.add_line_segments("/rig/end_stops", stops, (210, 40, 40), thickness=0.006)
+        label_at = on_arc(np.array([min(half, math.pi / 2), -min(half, math.pi / 2)])) * 1.3
+        scene.add_label("/rig/pronation", "pronation (+)", position=(*label_at[0, :2], z))
+        scene.add_label("/rig/supination", "supination (−)", position=(*label_at[1, :2], z))
 
     def _on_gui_update(self, _client_id: int, message: GuiUpdateMessage) -> None:
         if message.uuid == self.h_estop._impl.uuid:
@@ -197,6 +237,9 @@ class LivePlots:
             if not abs(th - self._theta) < HANDLE_STEP_RAD:  # also true for the first (NaN)
                 self._theta = th
                 self.h_handle.wxyz = (math.cos(th / 2.0), 0.0, 0.0, math.sin(th / 2.0))
+                text = f"angle: {math.degrees(th):+.0f}°"
+                if text != self.h_angle.text:  # a whole degree: the label is read, not measured off
+                    self.h_angle.text = text
 
     def _show_run(self, last: dict[str, Any]) -> None:
         m = last.get("metrics")

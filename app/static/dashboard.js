@@ -419,7 +419,12 @@ function drawFriction(p, pts, dirs, rot, fits = {}) {
   ctx.save(); ctx.beginPath(); ctx.rect(L, T, W - L - R, H - B - T); ctx.clip();
   curves.forEach(cu => { if (cu.cv) line(cu.cv, '#999', 1.4, [6, 4]); line(cu.st, '#333', 1.8, []); });
   ctx.fillStyle = '#1f77b4'; pts.dynamic.forEach(([v, y]) => { ctx.beginPath(); ctx.arc(X(v), Y(y), 2.5, 0, 6.3); ctx.fill(); });
-  ctx.fillStyle = '#d62728'; pts.static.forEach(([, y]) => { ctx.beginPath(); ctx.rect(X(0) - 3, Y(y) - 3, 6, 6); ctx.fill(); });
+  // diamonds, as the legend shows them (squares had been drawn under a ◆ legend)
+  ctx.fillStyle = '#d62728';
+  pts.static.forEach(([, y]) => {
+    const x0 = X(0), y0 = Y(y);
+    ctx.beginPath(); ctx.moveTo(x0, y0 - 4); ctx.lineTo(x0 + 4, y0); ctx.lineTo(x0, y0 + 4); ctx.lineTo(x0 - 4, y0); ctx.closePath(); ctx.fill();
+  });
   ctx.restore();
   c.dataset.points = pts.dynamic.length + pts.static.length;
 }
