@@ -195,6 +195,15 @@ def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client
     # the same case simulated offline (issue 3) scores MAE 0.13 N·m with PID; a live run on the
     # wall clock must land in the same range, and far below "no tracking" (|target| = 1.2)
     assert 0.0 < m["mae"] < 0.3, m
+    # how far the arm went: the stored workout's 90° swing, from where the handle rested, in the log too
+    lo, hi = run["result"]["angle_range_deg"]
+    assert st["last_run"]["angle_range_deg"] == [lo, hi]
+    log = client.get(f"/api/runs/{run_id}/series").json()
+    rows = np.asarray(log["rows"])
+    theta = np.degrees(rows[rows[:, 0] >= run["result"]["program_start_s"], log["columns"].index("theta")])
+    # the program is part of what the log holds from its start on (the log goes on through the release)
+    assert theta.min() - 0.01 <= lo < hi <= theta.max() + 0.01, (lo, hi, theta.min(), theta.max())
+    assert lo == pytest.approx(0.0, abs=2.0) and 80.0 < hi < 95.0, (lo, hi)  # from rest at neutral, 90° pronation
     assert run["result"]["t_engage_s"] is not None
     assert run["result"]["window_s"][1] > run["result"]["window_s"][0]
     # Eq 3.26's gains toggle the counter chamber every period as the vane turns towards it: the run says so
@@ -579,8 +588,11 @@ def test_the_viser_publisher_never_sends_nan(live_plots: tuple[Any, Any, int]) -
         # nobody watching: the charts are not encoded at all, but a finished run's metrics are
         # drawn when it ends (not later, mid-exercise, for a viewer who connects then)
         st.last_run = {"run_id": 7, "status": "complete", "metrics": {"mae": 0.05, "evar": None},
-                       "warnings": ["Chamber b's pressure toggled every control period (±0.24 bar, …)."]}
+                       "warnings": ["Chamber b's pressure toggled every control period (±0.24 bar, …)."],
+                       "angle_range_deg": [-2.6, 42.4]}
         plots.publish()
+        reached = "\n\nRange of motion reached: from 3° supination to 42° pronation (45° in all).\n\n"
+        assert reached in plots.h_metrics.content
         assert plots.h_metrics.content.endswith(f"**Note:** {st.last_run['warnings'][0]}")
         assert np.asarray(plots.h_torque.data[0]).size == 2  # still the placeholder built at start-up
         assert "Run 7" in plots.h_metrics.content and "| e_var [N²·m²] | – |" in plots.h_metrics.content

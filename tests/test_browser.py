@@ -351,6 +351,11 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     expect(page.locator("#metrics tr").nth(3)).to_have_text("e_var [N²·m²]–")
     expect(page.locator(f"#last-warn-{run_id}")).to_have_text(warning)
     expect(page.locator(f"#last-warn-{run_id}")).to_have_class("msg bad")
+    # how far the arm went, in the words viser uses too
+    from app.api.liveplots import range_words
+
+    expect(page.locator(f"#last-range-{run_id}")).to_have_text(
+        f"Range of motion reached: {range_words(*stored['result']['angle_range_deg'])}.")
     expect(page.locator("#hist-msg")).not_to_contain_text(f"run {run_id}:")
     page.unroute(f"**/api/runs/{run_id}")
 

@@ -32,6 +32,17 @@ ESTOP_HINT = ("Emergency stop: vent both chambers within one control period, fro
               "latched until cleared on the Station page")
 
 
+def angle_words(deg: float) -> str:
+    """An angle in the exercise's words ("12° pronation") [deg, positive: pronation]."""
+    r = math.floor(abs(deg) + 0.5)  # half up, as the dashboard's Math.round (round() would go to even)
+    return "neutral (0°)" if r == 0 else f"{r}° {'pronation' if deg > 0 else 'supination'}"
+
+
+def range_words(lo: float, hi: float) -> str:
+    """The range an exercise reached, as the dashboard words it [deg, positive: pronation]."""
+    return f"from {angle_words(lo)} to {angle_words(hi)} ({math.floor(hi - lo + 0.5)}° in all)"
+
+
 XSCALE: dict[str, Any] = {"x": {"time": False}}  # seconds of rig time, not a calendar date
 # [top, right, bottom, left] px around each chart. viser's default, [0, 24, 0, 0], cut the y axis's
 # top value in half and the sign off a value wider than the axis: "-0.025" read "0.025".
@@ -251,6 +262,9 @@ class LivePlots:
                          for k, v in m.items())
         head = f"**Run {last.get('run_id')}** ({last.get('status')})"
         notes = "".join(f"\n\n**Note:** {w}" for w in last.get("warnings") or ())
+        reached = last.get("angle_range_deg")
+        if reached is not None:
+            notes = f"\n\nRange of motion reached: {range_words(*reached)}.{notes}"
         self.h_metrics.content = f"{head}\n\n| metric | value |\n|---|---|\n{rows}{notes}"
         values = self._latest_per_controller(last.get("run_id"))
         if values:

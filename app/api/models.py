@@ -152,8 +152,9 @@ class EngineStatus(Documented):
         rig: The connected rig (kind, cylinder).
         fault: The latched fault's message.
         progress: Progress of the current work.
-        last_run: How the last run ended (id, status, metrics or result, and the ``warnings`` its result
-            carries, e.g. a chamber's pressure toggling every control period).
+        last_run: How the last run ended (id, status, metrics or result, the ``warnings`` its result
+            carries, e.g. a chamber's pressure toggling every control period, and an exercise's
+            ``angle_range_deg``: the lowest and highest angle it reached [deg, positive pronation]).
         safety: The safety supervisor: ``fault`` (code, message, t [s],
             channel, or null), ``no_action`` (the soft ROM limit is holding the
             vane), ``faults_total`` and the ``limits`` in force.

@@ -315,6 +315,25 @@ class Supervisor:
         return job.step(meas, dt) if job is not None else self.safe
 
 
+def angle_range_deg(theta: np.ndarray) -> list[float] | None:
+    """The range of motion an exercise reached: the lowest and highest measured angle [deg].
+
+    A therapist follows a person's active range from session to session; the
+    six metrics say how well the torque was tracked, not how far the arm went.
+
+    Args:
+        theta: The vane angle over the exercise's program, one sample per period
+            [rad, positive: pronation].
+
+    Returns:
+        ``[lowest, highest]`` [deg, positive: pronation], or None with no finite sample.
+    """
+    th = theta[np.isfinite(theta)]
+    if th.size == 0:
+        return None
+    return [math.degrees(float(th.min())), math.degrees(float(th.max()))]
+
+
 @dataclass
 class RunJob:
     """A scenario run in progress: pressurise, then the interaction controller until the rotation ends.
@@ -345,7 +364,8 @@ class RunJob:
     t_prog: float | None = None
     disturbed: bool = False
     done: bool = False
-    rows: list[tuple[float, float, float, float, float]] = field(default_factory=list)  # tr, torque, mode, p_a, p_b
+    # tr, torque, mode, p_a, p_b, theta: one row per period of the program
+    rows: list[tuple[float, float, float, float, float, float]] = field(default_factory=list)
     ending: str = "complete"
     t_release: float | None = None
     release_from: tuple[float, float] = (0.0, 0.0)  # the chambers' pressures it starts from [bar abs]
@@ -384,7 +404,7 @@ class RunJob:
             self.disturbed = True
             self.on_disturbance()
         cmd = self.controller.step(meas, dt)
-        self.rows.append((tr, meas.torque, float(self.controller.mode), meas.p_a, meas.p_b))
+        self.rows.append((tr, meas.torque, float(self.controller.mode), meas.p_a, meas.p_b, meas.theta))
         if tr >= self.t_end + 0.5:
             self._begin_release(meas)
         return cmd
@@ -1125,14 +1145,15 @@ class Station:
             # an overrun followed by a catch-up tick can sample the plant twice at
             # one rig time; the metrics need strictly increasing times
             a = a[np.r_[True, np.diff(a[:, 0]) > 0]]
+            result["angle_range_deg"] = angle_range_deg(a[:, 5])
             try:
                 m, window, t_on = score_case(job.spec.case, a[:, 0], a[:, 1], a[:, 2], job.t_end, job.t_d,
                                              job.spec.settings)
                 w_end = min(window[1], float(a[-1, 0]))
                 # the window and the engagement count from the program's start (after pressurising);
                 # program_start_s puts them on the run log's clock, where a plot of the run needs them
-                result = {"window_s": [window[0], w_end], "t_engage_s": t_on if math.isfinite(t_on) else None,
-                          "partial": w_end < window[1], "program_start_s": job.t_prog}
+                result |= {"window_s": [window[0], w_end], "t_engage_s": t_on if math.isfinite(t_on) else None,
+                           "partial": w_end < window[1], "program_start_s": job.t_prog}
                 if w_end - window[0] >= MIN_PARTIAL_WINDOW_S:
                     metrics = m  # a stopped run is scored over the part of the window it reached
                     result |= toggle_report(a[:, 0], a[:, 3], a[:, 4], (window[0], w_end))
@@ -1140,16 +1161,18 @@ class Station:
                     result["note"] = (f"stopped {max(w_end - window[0], 0.0):.2f} s into the evaluation window; "
                                       f"metrics need at least {MIN_PARTIAL_WINDOW_S:g} s")
             except ValueError as exc:  # too short a window (stopped early)
-                result = {"window_s": None, "note": str(exc)}
+                result |= {"window_s": None, "note": str(exc)}
             except Exception as exc:  # a scoring bug must not keep the run from ending (STOP, the watcher)
                 logger.exception("run %s: scoring failed", self._run_id)
-                result = {"window_s": None, "note": f"scoring failed ({type(exc).__name__}: {exc})"}
+                result |= {"window_s": None, "note": f"scoring failed ({type(exc).__name__}: {exc})"}
         if status == "fault":
             result["fault"] = self._fault_detail()
         if log is not None:
             log.close(status, metrics=metrics)
         self._store_end(status, metrics, result)
         self.last_run = {"run_id": self._run_id, "status": status, "metrics": metrics}
+        if result.get("angle_range_deg") is not None:
+            self.last_run["angle_range_deg"] = result["angle_range_deg"]
         if result.get("warnings"):  # shown with the metrics wherever they are (the dashboard, viser)
             self.last_run["warnings"] = list(result["warnings"])
         self._job, self._log = None, None

@@ -118,6 +118,15 @@ function hideResultCharts() {
 }
 // what an exercise was, as the history names it: scenario · controller · target
 const exerciseWhat = spec => `${spec.scenario} · ${spec.controller} · ${spec.target_nm} N·m`;
+// an angle in the words of the exercise [deg, positive: pronation]
+function angleWords(v) {
+  const r = Math.round(Math.abs(v));
+  return r === 0 ? 'neutral (0°)' : `${r}° ${v > 0 ? 'pronation' : 'supination'}`;
+}
+// the lowest and highest angle an exercise reached, [lo, hi] [deg]
+function rangeWords([lo, hi]) {
+  return `from ${angleWords(lo)} to ${angleWords(hi)} (${Math.round(hi - lo)}° in all)`;
+}
 function showLast(lr) {
   hideResultCharts();
   const r = lr.result || {};
@@ -130,12 +139,15 @@ function showLast(lr) {
     // what the station noticed about the run (a chamber's pressure loop chattering), under its metrics
     const warn = $(`last-warn-${lr.run_id}`), ws = run && run.result && run.result.warnings;
     if (warn && Array.isArray(ws) && ws.length) { warn.textContent = ws.join(' '); warn.hidden = false; }
+    // how far the arm went, beside how well the torque was tracked
+    const rng = $(`last-range-${lr.run_id}`), ar = run && run.result && run.result.angle_range_deg;
+    if (rng && Array.isArray(ar) && ar.length === 2) { rng.textContent = `Range of motion reached: ${rangeWords(ar)}.`; rng.hidden = false; }
   });
   if (lr.metrics) {
     const part = r.partial ? ` — scored over the ${(r.window_s[1] - r.window_s[0]).toFixed(1)} s reached before the stop` : '';
     $('last').innerHTML = `<p>Exercise ${esc(lr.run_id)}<span id="last-what-${esc(lr.run_id)}"></span>: ${esc(lr.status)}${esc(part)}</p><table id="metrics">` +
       Object.entries(METRICS).map(([k, l]) => `<tr><td>${l}</td><td>${fmt(lr.metrics[k], 4)}</td></tr>`).join('') +  // null: a metric the run could not give
-      `</table><p id="last-warn-${esc(lr.run_id)}" class="msg bad" hidden></p>`;
+      `</table><p id="last-range-${esc(lr.run_id)}" hidden></p><p id="last-warn-${esc(lr.run_id)}" class="msg bad" hidden></p>`;
   } else if (r.parameters && ('filling' in r.parameters || 'exhausting' in r.parameters)) {
     showValve(lr);
   } else if (r.parameters && 'ki' in r.parameters) {

@@ -75,9 +75,10 @@ def list_runs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000, descri
 def run_detail(run_id: IdPath, store: StoreDep) -> RunInfo:
     """`result` is the run's own: an exercise's scored window (counted from `result.program_start_s` on the
     log's clock), each chamber's period-2 toggle over it (`pressure_toggle_bar`) and, past 0.02 bar, a
-    plain-words `warnings` entry (the pressure loop chatters), an identification's parameters with their
-    intervals and test points, a tuning's gains and loops, a diagnosis's report. `has_series`: whether a log
-    is stored for `…/series` and `…/export`."""
+    plain-words `warnings` entry (the pressure loop chatters), the range of motion it reached
+    (`angle_range_deg`: the lowest and highest measured angle over its program [deg, positive pronation]),
+    an identification's parameters with their intervals and test points, a tuning's gains and loops, a
+    diagnosis's report. `has_series`: whether a log is stored for `…/series` and `…/export`."""
     return RunInfo.from_row(_get(store, run_id))
 
 
