@@ -298,8 +298,10 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     expect(page.locator("#progress-chart")).to_be_hidden()
     fake = [{"id": 9 - k, "kind": "workout", "status": "complete", "started": 1.8e9 - 86400 * k, "ended": None,
              "spec": {"scenario": sc, "controller": "fuzzy", "target_nm": 1.2}, "metrics": {"mae": mae},
-             "result": None, "person": "P-007", "notes": "", "session_id": None, "has_series": False}
-            for k, (sc, mae) in enumerate((("SC-1", 0.06), ("SC-2", 0.09), ("SC-1", 0.12)))]
+             "result": reached, "person": "P-007", "notes": "", "session_id": None, "has_series": False}
+            for k, (sc, mae, reached) in enumerate((("SC-1", 0.06, {"angle_range_deg": [-12.4, 61.0]}),
+                                                     ("SC-2", 0.09, None),  # stored before ranges were
+                                                     ("SC-1", 0.12, {"angle_range_deg": [0.2, 44.6]})))]
     page.route("**/api/runs?kind=workout*", lambda route: route.fulfill(json=fake))
     page.locator("#hist-person").dispatch_event("change")
     expect(page.locator("#progress-chart")).to_contain_text("Progress of P-007")
@@ -308,6 +310,14 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     assert titles[0].startswith("run 7,") and "SC-1 · fuzzy · 1.2 N·m — MAE 0.120 N·m" in titles[0], titles
     assert titles[1].startswith("run 8,") and "SC-2" in titles[1] and titles[2].startswith("run 9,"), titles
     expect(page.locator("#progress-chart")).to_contain_text("SC-2")  # the legend: a colour per scenario
+    # under it, the range of motion each of those exercises reached, where the run carries one
+    bars = page.locator("#progress-chart svg[aria-label='range of motion'] rect")
+    expect(bars).to_have_count(2)
+    assert bars.locator("title").all_text_contents() == [
+        "run 7: from neutral (0°) to 45° pronation (44° in all)",
+        "run 9: from 12° supination to 61° pronation (73° in all)"]
+    box = [bars.nth(k).bounding_box() for k in (0, 1)]
+    assert box[0] and box[1] and box[1]["height"] > box[0]["height"] and box[1]["x"] > box[0]["x"]  # oldest first
     page.unroute("**/api/runs?kind=workout*")
     # a station that does not answer is said so where the answer would show (its requests had failed as
     # uncaught errors, the history and the form left as they were): the history, the identification form

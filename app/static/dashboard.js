@@ -672,7 +672,8 @@ $('hist-person').addEventListener('change', () => { histOffset = 0; loadRuns(); 
 // scenario (a stopped run is scored over what it reached, so it is left out)
 async function drawProgress(who) {
   const box = $('progress-chart');
-  const all = who ? await api('GET', `/api/runs?kind=workout&limit=200&with_result=false&person=${encodeURIComponent(who)}`) : [];
+  // with their results (an exercise's is a few hundred bytes): the range of motion each reached
+  const all = who ? await api('GET', `/api/runs?kind=workout&limit=200&with_result=true&person=${encodeURIComponent(who)}`) : [];
   const runs = all.filter(r => r.status === 'complete' && r.metrics && typeof r.metrics.mae === 'number').reverse();
   box.hidden = !runs.length;
   if (!runs.length) { box.innerHTML = ''; return; }
@@ -693,7 +694,28 @@ async function drawProgress(who) {
     `<text x="${pad + 14 + k * 70}" y="11" font-size="11">${esc(sc)}</text>`).join('');
   const span = all.length === 200 ? ' among their latest 200' : '';
   box.innerHTML = `<div style="font-size:.85rem;color:var(--muted)">Progress of ${esc(who)}: MAE [N·m] of each complete exercise${span}, oldest first</div>` +
-    `<svg width="${W}" height="${H}" role="img" aria-label="progress">${svg}</svg>`;
+    `<svg width="${W}" height="${H}" role="img" aria-label="progress">${svg}</svg>` + rangeProgress(runs, x, W, pad, COL);
+}
+// under the MAE, at the same places: the range of motion each of those exercises reached, a bar from its
+// lowest to its highest angle (runs stored before the station recorded it have none)
+function rangeProgress(runs, x, W, pad, COL) {
+  const has = runs.map(r => r.result && Array.isArray(r.result.angle_range_deg) ? r.result.angle_range_deg : null);
+  if (!has.some(Boolean)) return '';
+  const H = 140, lo = Math.min(0, ...has.filter(Boolean).map(a => a[0])), hi = Math.max(0, ...has.filter(Boolean).map(a => a[1]));
+  const top = hi + 0.1 * (hi - lo || 1), bottom = lo - 0.1 * (hi - lo || 1);
+  const y = v => 8 + (H - 24) * (top - v) / (top - bottom);
+  let svg = `<line x1="${pad}" x2="${W - pad}" y1="${y(0)}" y2="${y(0)}" stroke="#d5dbe3"/>` +
+    `<text x="4" y="${y(0) + 4}" font-size="11">0°</text>` +
+    (hi > 0 ? `<text x="4" y="${y(hi) + 4}" font-size="11">${Math.round(hi)}°</text>` : '') +
+    (lo < 0 ? `<text x="4" y="${y(lo) + 4}" font-size="11">${Math.round(lo)}°</text>` : '');
+  runs.forEach((r, i) => {
+    const a = has[i];
+    if (!a) return;
+    svg += `<rect x="${x(i) - 3}" y="${y(a[1])}" width="6" height="${Math.max(1, y(a[0]) - y(a[1]))}" fill="${COL[r.spec.scenario] || '#333'}">` +
+      `<title>run ${r.id}: ${esc(rangeWords(a))}</title></rect>`;
+  });
+  return `<div style="font-size:.85rem;color:var(--muted)">Range of motion reached [°] by the same exercises (positive: pronation)</div>` +
+    `<svg width="${W}" height="${H}" role="img" aria-label="range of motion">${svg}</svg>`;
 }
 
 // ------------------------------------------------------------------------------- therapy sessions
