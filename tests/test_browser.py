@@ -13,6 +13,7 @@ import csv
 import io
 import math
 import os
+import re
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -185,6 +186,16 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     assert time.monotonic() - t0 < 2.0  # issue 5: live torque and pressure within 2 s of Start
     page.wait_for_timeout(5000)  # pressurise, engage, converge: enough of the window to score
     page.screenshot(path=str(SHOTS / "2-live-exercise.png"))
+    # the handle's angle, live, between the end stops (±135°) and inside their no-action zones (10° each)
+    expect(page.locator("#handle-gauge")).to_be_visible()
+    mark = page.locator("#handle-mark")
+    deg = float(mark.get_attribute("data-deg") or "nan")
+    assert 5.0 < deg < 135.0, deg  # SC-1's +1.2 N·m turns the handle towards pronation
+    assert float((mark.get_attribute("x") or "").rstrip("%")) == pytest.approx(50 + 50 * deg / 135, abs=0.01)
+    expect(page.locator("#handle-angle")).to_have_text(re.compile(r"^Handle: \d+° pronation$"))
+    zones = page.locator("#handle-svg rect[fill='#f0a040']")
+    assert [float((zones.nth(k).get_attribute("width") or "").rstrip("%")) for k in (0, 1)] == \
+        pytest.approx([100 * 10 / 270] * 2)
     # the charts' gridlines sit at round values (1, 2, 2.5 or 5 × 10^k apart), not at the span cut in four
     for chart in ("#c-torque", "#c-press"):
         ticks = [float(v) for v in (page.locator(chart).get_attribute("data-ticks") or "").split()]

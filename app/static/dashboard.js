@@ -87,6 +87,7 @@ function render(st) {
     });
   }
   const sf = st.safety || {};
+  setGauge(st.state !== 'disconnected' && st.rig && st.rig.kind === 'rotary' ? sf.limits : null);
   $('engine-msg').textContent = st.fault ? 'Fault: ' + st.fault + (sf.fault ? ` [${sf.fault.code}] — the rig is vented; clear the fault to reconnect` : '')
     : (sf.no_action ? 'Soft range-of-motion limit: holding equal pressures' : '');
   const p = st.progress;
@@ -612,6 +613,32 @@ function draw(canvas, series, lo, hi, rows = live, shade = null) {
   });
   ctx.setLineDash([]);
 }
+// the handle's angle on a bar spanning the range of motion, end stops at its ends and the no-action zone
+// inside each drawn as the station's safety applies them; built when the limits change, moved per poll
+let gaugeKey = null, gaugeHalf = 0;
+function setGauge(lim) {
+  const rom = lim && typeof lim.rom_deg === 'number' ? lim.rom_deg : null;
+  const key = rom === null ? null : `${rom}/${lim.soft_margin_deg}`;
+  if (key === gaugeKey) return;
+  gaugeKey = key; $('handle-gauge').hidden = rom === null;
+  if (rom === null) return;
+  gaugeHalf = rom / 2;
+  const soft = 100 * lim.soft_margin_deg / rom;
+  $('handle-svg').innerHTML =
+    `<rect x="0" y="9" width="100%" height="8" fill="#e6ebf1"/>` +
+    `<rect x="0" y="9" width="${soft}%" height="8" fill="#f0a040"/><rect x="${100 - soft}%" y="9" width="${soft}%" height="8" fill="#f0a040"/>` +
+    `<rect x="0" y="3" width="3" height="20" fill="#d62728"/><rect x="100%" y="3" width="3" height="20" fill="#d62728" transform="translate(-3,0)"/>` +
+    `<rect x="50%" y="6" width="1" height="14" fill="#888"/>` +
+    `<rect id="handle-mark" x="50%" y="1" width="6" height="24" rx="2" fill="#1f77b4" transform="translate(-3,0)" visibility="hidden"/>`;
+  $('handle-angle').textContent = '';
+}
+function moveGauge(thetaRad) {
+  if (gaugeKey === null || !Number.isFinite(thetaRad)) return;
+  const deg = thetaRad * 180 / Math.PI, pct = Math.min(100, Math.max(0, 50 + 50 * deg / gaugeHalf));
+  const m = $('handle-mark'); m.setAttribute('x', `${pct.toFixed(2)}%`); m.setAttribute('visibility', 'visible');
+  m.dataset.deg = deg.toFixed(2);
+  $('handle-angle').textContent = `Handle: ${angleWords(deg)}`;
+}
 async function pollLive() {
   try {
     const d = await api('GET', `/api/live?since=${since}&max_rows=3000`);
@@ -622,6 +649,8 @@ async function pollLive() {
       draw($('c-torque'), [[1, '#1f77b4'], [2, '#d62728', true]], -0.2, 0.2);
       draw($('c-press'), [[3, '#2ca02c'], [5, '#2ca02c', true], [4, '#9467bd'], [6, '#9467bd', true]], 1, 1.2);
       $('c-torque').dataset.samples = live.length;
+      const ith = d.columns.indexOf('theta');
+      if (ith >= 0) moveGauge(d.rows[d.rows.length - 1][ith]);
     } else if (d.t_last < since) { since = -1; live = []; }  // a new connection restarts the time axis
   } catch (e) { /* the state poll reports an unreachable server */ }
 }
