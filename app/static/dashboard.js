@@ -105,10 +105,14 @@ function render(st) {
     if ($('session').value) loadSessions($('session').value);  // its run count
   } else if (!st.last_run && render.lastShown === undefined) {
     // a station restarted since its last run keeps none in memory, and the panel had said "No run
-    // finished yet" over a history of runs: the newest stored run is shown, as if picked there
+    // finished yet" over a history of runs: the newest stored run that has ended is shown, as if picked
+    // there (a page opened during the restarted station's first run had shown that run as "running")
     render.lastShown = null;
-    api('GET', '/api/runs?limit=1&with_result=false')
-      .then(rs => { if (rs.length && render.lastShown === null && shownRun === null) return showRun(rs[0].id); })
+    api('GET', '/api/runs?limit=2&with_result=false')
+      .then(rs => {
+        const ended = rs.find(r => r.status !== 'running');
+        if (ended && render.lastShown === null && shownRun === null) return showRun(ended.id);
+      })
       .catch(() => {});  // the history says what is wrong with the store
   }
 }
