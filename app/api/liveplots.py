@@ -140,8 +140,8 @@ class LivePlots:
     def _build_scene(self) -> None:
         """The handle on its shaft, over the range it may turn through.
 
-        The grip turns about the shaft (z), its thumb end (the sphere) up at
-        neutral. Under it: the range of motion between the end stops (red),
+        The grip turns about the shaft (z) by the measured angle, its thumb
+        end (the sphere) along +y at neutral. Under it: the range of motion between the end stops (red),
         the no-action zone inside each (orange), and which way is pronation.
         A label on the shaft gives the measured angle in degrees.
         """
