@@ -558,6 +558,40 @@ def test_stored_gains_reach_the_controller() -> None:
         RunSpec(workout={"amplitude_deg": 200})
 
 
+def test_a_persons_exercises_come_as_one_table_oldest_first(client: TestClient) -> None:
+    """GET /api/runs/exercises: one CSV row per exercise, for a clinical record or a script; runs of other
+    kinds and other people are left out, a metric a run could not give is an empty cell."""
+    import csv
+
+    store = client.app.state.store  # type: ignore[attr-defined]
+    done = []
+    for k, (person, kind) in enumerate((("P-007", "workout"), ("P-008", "workout"), ("P-007", "rotary_friction"),
+                                        ("P-007", "workout"))):
+        spec = {"scenario": "SC-1", "controller": "fuzzy", "target_nm": -0.6 * (k + 1), "person": person}
+        rid = store.run_started(kind, spec, "")
+        result = {"angle_range_deg": [-41.5, 3.25], "warnings": ["Chamber b's pressure toggled …", "Another."]}
+        store.run_finished(rid, "complete" if k else "stopped", {"mae": 0.05 * (k + 1), "evar": None},
+                           result if k == 3 else {})
+        done.append(rid)
+    client.patch(f"/api/runs/{done[3]}", json={"notes": 'said "tired", then, went on'})
+    r = client.get("/api/runs/exercises", params={"person": "P-007"})
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
+    assert r.headers["content-disposition"] == 'attachment; filename="exercises-P-007.csv"'
+    rows = list(csv.DictReader(io.StringIO(r.text)))
+    assert [int(x["run"]) for x in rows] == [done[0], done[3]]  # oldest first, exercises of P-007 only
+    first, last = rows
+    assert (first["status"], first["mae_Nm"], first["evar_N2m2"], first["angle_min_deg"]) == ("stopped", "0.05", "", "")
+    assert float(last["target_Nm"]) == pytest.approx(-2.4) and float(last["mae_Nm"]) == pytest.approx(0.2)
+    assert (float(last["angle_min_deg"]), float(last["angle_max_deg"])) == (-41.5, 3.25)
+    assert last["warnings"] == "Chamber b's pressure toggled … Another."
+    assert last["notes"] == 'said "tired", then, went on'
+    assert last["started_utc"].endswith("+00:00") and last["scenario"] == "SC-1" and last["controller"] == "fuzzy"
+    # everyone's, and a bad filter refused as the list refuses it
+    assert len(list(csv.DictReader(io.StringIO(client.get("/api/runs/exercises").text)))) == 3
+    bad = client.get("/api/runs/exercises", params={"person": "Jane Doe"})
+    assert bad.status_code == 422 and bad.json()["detail"][0]["loc"] == ["query", "person"]
+
+
 @pytest.fixture()
 def live_plots(tmp_path: Path) -> Iterator[tuple[Any, Any, int]]:
     """A station (not connected) with its viser live plots on a free port: (station, plots, port)."""

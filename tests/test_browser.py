@@ -331,6 +331,12 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
         "run 9: from 12° supination to 61° pronation (73° in all)"]
     box = [bars.nth(k).bounding_box() for k in (0, 1)]
     assert box[0] and box[1] and box[1]["height"] > box[0]["height"] and box[1]["x"] > box[0]["x"]  # oldest first
+    # and all of the person's exercises as one table, from the store (the stopped one is in it)
+    with page.expect_download() as dl:
+        page.click("#progress-csv")
+    assert dl.value.suggested_filename == "exercises-P-007.csv"
+    table = list(csv.DictReader(io.StringIO(Path(dl.value.path()).read_text())))
+    assert [(r["run"], r["person"], r["status"]) for r in table] == [(str(run_id), "P-007", "stopped")], table
     page.unroute("**/api/runs?kind=workout*")
     # a station that does not answer is said so where the answer would show (its requests had failed as
     # uncaught errors, the history and the form left as they were): the history, the identification form

@@ -727,7 +727,9 @@ async function drawProgress(who) {
     `<text x="${pad + 14 + k * 70}" y="11" font-size="11">${esc(sc)}</text>`).join('');
   const span = all.length === 200 ? ' among their latest 200' : '';
   box.innerHTML = `<div style="font-size:.85rem;color:var(--muted)">Progress of ${esc(who)}: MAE [N·m] of each complete exercise${span}, oldest first</div>` +
-    `<svg width="${W}" height="${H}" role="img" aria-label="progress">${svg}</svg>` + rangeProgress(runs, x, W, pad, COL);
+    `<svg width="${W}" height="${H}" role="img" aria-label="progress">${svg}</svg>` + rangeProgress(runs, x, W, pad, COL) +
+    `<p class="msg"><a id="progress-csv" href="/api/runs/exercises?person=${encodeURIComponent(who)}" download>` +
+    `All of ${esc(who)}'s exercises as a table (CSV: date, exercise, how it ended, metrics, range of motion, notes)</a></p>`;
 }
 // under the MAE, at the same places: the range of motion each of those exercises reached, a bar from its
 // lowest to its highest angle (runs stored before the station recorded it have none)
@@ -856,7 +858,7 @@ async function showRun(id) {
   $('runs').querySelectorAll('tr[data-run]').forEach(x => x.classList.toggle('shown', x.dataset.run === String(r.id)));
 }
 // a plain link cannot carry the token: with one, exports are fetched and handed to the browser as a file
-$('runs').addEventListener('click', async ev => {
+async function downloadWithToken(ev) {
   const a = ev.target.closest('a[download]');
   if (!a || !sessionStorage.getItem('cwrr-token')) return;
   ev.preventDefault();
@@ -867,7 +869,9 @@ $('runs').addEventListener('click', async ev => {
   const url = URL.createObjectURL(await r.blob());
   const tmp = document.createElement('a'); tmp.href = url; tmp.download = name ? name[1] : 'run';
   tmp.click(); setTimeout(() => URL.revokeObjectURL(url), 1000);
-});
+}
+$('runs').addEventListener('click', downloadWithToken);
+$('progress-chart').addEventListener('click', downloadWithToken);
 // each poll waits for its previous answer: with setInterval, answers taking 350 ms had four
 // live requests in flight (tests/test_browser.py); they came back out of order, appended
 // samples twice, and a late empty one (t_last < since) looked like a new connection

@@ -71,6 +71,57 @@ def list_runs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000, descri
     return [RunInfo.from_row(r) for r in store.runs(limit, offset, kind, session_id, person, with_result)]
 
 
+# the six metrics' columns in the exercises table, with their units in plain ASCII (a spreadsheet opening
+# a UTF-8 file without a byte-order mark garbles "N·m"; with one, a script's first column name does)
+EXERCISE_METRIC_COLUMNS: dict[str, str] = {"mae": "mae_Nm", "iae": "iae_Nms", "itae": "itae_Nms2",
+                                           "evar": "evar_N2m2", "rmse": "rmse_Nm", "maxae": "maxae_Nm"}
+EXERCISE_COLUMNS: tuple[str, ...] = (
+    "run", "started_utc", "person", "session", "scenario", "controller", "target_Nm", "status",
+    *EXERCISE_METRIC_COLUMNS.values(), "angle_min_deg", "angle_max_deg", "warnings", "notes")
+
+
+def exercises_csv(runs: list[dict[str, Any]]) -> str:
+    """Stored exercises as one table, one row each in the order given (:data:`EXERCISE_COLUMNS`).
+
+    A metric the run could not give, or a range it did not record, is an empty cell; angles are
+    positive towards pronation.
+    """
+    import csv
+    from datetime import UTC, datetime
+
+    def cell(v: Any) -> Any:
+        return "" if v is None else v
+
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(EXERCISE_COLUMNS)
+    for r in runs:
+        spec, metrics, result = r["spec"] or {}, r["metrics"] or {}, r["result"] or {}
+        lo, hi = result.get("angle_range_deg") or (None, None)
+        w.writerow([r["id"], datetime.fromtimestamp(r["started"], UTC).isoformat(timespec="seconds"),
+                    cell(r["person"]), cell(r["session_id"]), cell(spec.get("scenario")),
+                    cell(spec.get("controller")), cell(spec.get("target_nm")), r["status"],
+                    *(cell(metrics.get(k)) for k in EXERCISE_METRIC_COLUMNS), cell(lo), cell(hi),
+                    " ".join(result.get("warnings") or ()), r["notes"] or ""])
+    return buf.getvalue()
+
+
+@router.get("/exercises", responses={200: {"content": {"text/csv": {}}, "description": "The table, as CSV"}},
+            response_class=Response, summary="Stored exercises as one CSV table, oldest first (e.g. one person's)")
+def exercises_table(store: StoreDep, person: PersonFilter = None,
+                    session_id: Annotated[int | None, Query(ge=1, le=2**62, description="Only this therapy session's")]
+                    = None,
+                    limit: Annotated[int, Query(ge=1, le=10000, description="The newest this many")] = 1000,
+                    ) -> Response:
+    """One row per exercise (a person's progress for their clinical record, or a study's runs for a
+    script): when, scenario, controller and target, how it ended, its six metrics, the range of motion it
+    reached and what the station noticed, with the notes. Oldest first; the filters combine."""
+    rows = store.runs(limit, 0, "workout", session_id, person, True)[::-1]
+    name = f"exercises-{person}.csv" if person else "exercises.csv"
+    return Response(exercises_csv(rows), media_type="text/csv",
+                    headers={"Content-Disposition": f'attachment; filename="{name}"'})
+
+
 @router.get("/{run_id}", response_model=RunInfo, responses=NOT_FOUND, summary="One run with metrics and results")
 def run_detail(run_id: IdPath, store: StoreDep) -> RunInfo:
     """`result` is the run's own: an exercise's scored window (counted from `result.program_start_s` on the
