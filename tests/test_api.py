@@ -559,7 +559,7 @@ def test_stored_gains_reach_the_controller() -> None:
 
 
 def test_a_persons_exercises_come_as_one_table_oldest_first(client: TestClient) -> None:
-    """GET /api/runs/exercises: one CSV row per exercise, for a clinical record or a script; runs of other
+    """GET /api/exercises: one CSV row per exercise, for a clinical record or a script; runs of other
     kinds and other people are left out, a metric a run could not give is an empty cell."""
     import csv
 
@@ -574,7 +574,7 @@ def test_a_persons_exercises_come_as_one_table_oldest_first(client: TestClient) 
                            result if k == 3 else {})
         done.append(rid)
     client.patch(f"/api/runs/{done[3]}", json={"notes": 'said "tired", then, went on'})
-    r = client.get("/api/runs/exercises", params={"person": "P-007"})
+    r = client.get("/api/exercises", params={"person": "P-007"})
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
     assert r.headers["content-disposition"] == 'attachment; filename="exercises-P-007.csv"'
     rows = list(csv.DictReader(io.StringIO(r.text)))
@@ -587,8 +587,8 @@ def test_a_persons_exercises_come_as_one_table_oldest_first(client: TestClient) 
     assert last["notes"] == 'said "tired", then, went on'
     assert last["started_utc"].endswith("+00:00") and last["scenario"] == "SC-1" and last["controller"] == "fuzzy"
     # everyone's, and a bad filter refused as the list refuses it
-    assert len(list(csv.DictReader(io.StringIO(client.get("/api/runs/exercises").text)))) == 3
-    bad = client.get("/api/runs/exercises", params={"person": "Jane Doe"})
+    assert len(list(csv.DictReader(io.StringIO(client.get("/api/exercises").text)))) == 3
+    bad = client.get("/api/exercises", params={"person": "Jane Doe"})
     assert bad.status_code == 422 and bad.json()["detail"][0]["loc"] == ["query", "person"]
 
 

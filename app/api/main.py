@@ -222,6 +222,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.include_router(engine.router)
     app.include_router(runs.router)
+    app.include_router(runs.exercises_router)
     app.include_router(params.router)
     app.include_router(sessions.router)
     app.include_router(diagnoses.router)

@@ -728,7 +728,7 @@ async function drawProgress(who) {
   const span = all.length === 200 ? ' among their latest 200' : '';
   box.innerHTML = `<div style="font-size:.85rem;color:var(--muted)">Progress of ${esc(who)}: MAE [N·m] of each complete exercise${span}, oldest first</div>` +
     `<svg width="${W}" height="${H}" role="img" aria-label="progress">${svg}</svg>` + rangeProgress(runs, x, W, pad, COL) +
-    `<p class="msg"><a id="progress-csv" href="/api/runs/exercises?person=${encodeURIComponent(who)}" download>` +
+    `<p class="msg"><a id="progress-csv" href="/api/exercises?person=${encodeURIComponent(who)}" download>` +
     `All of ${esc(who)}'s exercises as a table (CSV: date, exercise, how it ended, metrics, range of motion, notes)</a></p>`;
 }
 // under the MAE, at the same places: the range of motion each of those exercises reached, a bar from its

@@ -25,6 +25,8 @@ from app.engine.station import RunKind
 from app.storage import StoreUnavailable
 
 router = APIRouter(prefix="/api/runs", tags=["runs"], dependencies=[READ], responses=AUTH_RESPONSES)
+# its own path: under /api/runs a PATCH of it had reached PATCH /api/runs/{run_id} (422, not 405)
+exercises_router = APIRouter(prefix="/api/exercises", tags=["runs"], dependencies=[READ], responses=AUTH_RESPONSES)
 NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"description": "No such run, or it has no time series"}}
 
 
@@ -106,8 +108,9 @@ def exercises_csv(runs: list[dict[str, Any]]) -> str:
     return buf.getvalue()
 
 
-@router.get("/exercises", responses={200: {"content": {"text/csv": {}}, "description": "The table, as CSV"}},
-            response_class=Response, summary="Stored exercises as one CSV table, oldest first (e.g. one person's)")
+@exercises_router.get("", responses={200: {"content": {"text/csv": {}}, "description": "The table, as CSV"}},
+                      response_class=Response,
+                      summary="Stored exercises as one CSV table, oldest first (e.g. one person's)")
 def exercises_table(store: StoreDep, person: PersonFilter = None,
                     session_id: Annotated[int | None, Query(ge=1, le=2**62, description="Only this therapy session's")]
                     = None,
