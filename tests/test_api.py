@@ -586,6 +586,10 @@ def test_a_persons_exercises_come_as_one_table_oldest_first(client: TestClient) 
     assert last["warnings"] == "Chamber b's pressure toggled … Another."
     assert last["notes"] == 'said "tired", then, went on'
     assert last["started_utc"].endswith("+00:00") and last["scenario"] == "SC-1" and last["controller"] == "fuzzy"
+    # typed text a spreadsheet would run as a formula stays text (CSV injection)
+    client.patch(f"/api/runs/{done[0]}", json={"notes": '=HYPERLINK("http://x.example","click")'})
+    again = list(csv.DictReader(io.StringIO(client.get("/api/exercises", params={"person": "P-007"}).text)))
+    assert again[0]["notes"] == "'=HYPERLINK(\"http://x.example\",\"click\")" and again[1]["notes"] == last["notes"]
     # everyone's, and a bad filter refused as the list refuses it
     assert len(list(csv.DictReader(io.StringIO(client.get("/api/exercises").text)))) == 3
     bad = client.get("/api/exercises", params={"person": "Jane Doe"})

@@ -94,6 +94,11 @@ def exercises_csv(runs: list[dict[str, Any]]) -> str:
     def cell(v: Any) -> Any:
         return "" if v is None else v
 
+    def text(v: str) -> str:
+        # typed text (notes, a person's id) that a spreadsheet would run as a formula is kept as text
+        # (OWASP's CSV injection: "=HYPERLINK(…)" in a note became a live link in the clinical record)
+        return "'" + v if v[:1] in ("=", "+", "-", "@", "\t", "\r") else v
+
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(EXERCISE_COLUMNS)
@@ -101,10 +106,10 @@ def exercises_csv(runs: list[dict[str, Any]]) -> str:
         spec, metrics, result = r["spec"] or {}, r["metrics"] or {}, r["result"] or {}
         lo, hi = result.get("angle_range_deg") or (None, None)
         w.writerow([r["id"], datetime.fromtimestamp(r["started"], UTC).isoformat(timespec="seconds"),
-                    cell(r["person"]), cell(r["session_id"]), cell(spec.get("scenario")),
+                    text(r["person"] or ""), cell(r["session_id"]), cell(spec.get("scenario")),
                     cell(spec.get("controller")), cell(spec.get("target_nm")), r["status"],
                     *(cell(metrics.get(k)) for k in EXERCISE_METRIC_COLUMNS), cell(lo), cell(hi),
-                    " ".join(result.get("warnings") or ()), r["notes"] or ""])
+                    text(" ".join(result.get("warnings") or ())), text(r["notes"] or "")])
     return buf.getvalue()
 
 
