@@ -187,7 +187,8 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     page.screenshot(path=str(SHOTS / "2-live-exercise.png"))
     # the handle's angle, live, between the end stops (±135°) and inside their no-action zones (10° each)
     expect(page.locator("#handle-gauge")).to_be_visible()
-    # read at one instant: the next poll moves the mark (two reads 0.16° apart failed once in CI)
+    # read at one instant: the next poll moves the mark (two reads that straddled a poll, 0.16 % of the bar
+    # apart, failed once in CI)
     deg, x, said = page.evaluate("""() => { const m = document.getElementById('handle-mark');
         return [Number(m.dataset.deg), parseFloat(m.getAttribute('x')),
                 document.getElementById('handle-angle').textContent]; }""")
