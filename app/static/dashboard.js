@@ -735,8 +735,9 @@ async function drawProgress(who) {
 // lowest to its highest angle (runs stored before the station recorded it have none)
 function rangeProgress(runs, x, W, pad, COL) {
   const has = runs.map(r => r.result && Array.isArray(r.result.angle_range_deg) ? r.result.angle_range_deg : null);
-  if (!has.some(Boolean)) return '';
-  const H = 140, lo = Math.min(0, ...has.filter(Boolean).map(a => a[0])), hi = Math.max(0, ...has.filter(Boolean).map(a => a[1]));
+  const got = has.filter(Boolean);
+  if (!got.length) return '';
+  const H = 140, lo = Math.min(0, ...got.map(a => a[0])), hi = Math.max(0, ...got.map(a => a[1]));
   const top = hi + 0.1 * (hi - lo || 1), bottom = lo - 0.1 * (hi - lo || 1);
   const y = v => 8 + (H - 24) * (top - v) / (top - bottom);
   let svg = `<line x1="${pad}" x2="${W - pad}" y1="${y(0)}" y2="${y(0)}" stroke="#d5dbe3"/>` +
