@@ -596,6 +596,56 @@ def test_a_persons_exercises_come_as_one_table_oldest_first(client: TestClient) 
     assert bad.status_code == 422 and bad.json()["detail"][0]["loc"] == ["query", "person"]
 
 
+def test_an_exercise_is_compared_with_each_other_controllers_latest_like_run(client: TestClient) -> None:
+    """GET /api/runs/{id}/comparison: what the thesis's radar charts set side by side (Fig 4.26), for the
+    dashboard's radar or a script: like runs only, the exercise first, each metric's rim and best."""
+    from app.engine.metrics import METRICS
+
+    store = client.app.state.store  # type: ignore[attr-defined]
+
+    def run(controller: str, scale: float, status: str = "complete", person: str = "P-cmp",
+            target: float = 1.2, kind: str = "workout") -> int:
+        rid = store.run_started(kind, {"scenario": "SC-2", "controller": controller, "target_nm": target,
+                                       "person": person}, "")
+        metrics = {m: scale * (k + 1) for k, m in enumerate(METRICS)}
+        metrics["maxae"] = 1.0 / scale  # one metric where the order turns round
+        store.run_finished(rid, status, metrics, None)
+        return rid
+
+    pid = run("pid", 0.2)
+    old_default = run("default", 0.5)
+    default = run("default", 0.3)
+    run("default", 0.1, status="stopped")  # later, but scored over what it reached
+    run("fuzzy", 0.05, target=0.6)  # another target
+    run("fuzzy", 0.05, person="P-other")  # another arm
+    fuzzy = run("fuzzy", 0.1, status="stopped")  # the run shown is compared whatever its ending
+    r = client.get(f"/api/runs/{fuzzy}/comparison")
+    assert r.status_code == 200, r.text
+    got = r.json()
+    assert (got["run_id"], got["scenario"], got["target_nm"], got["person"]) == (fuzzy, "SC-2", 1.2, "P-cmp")
+    assert [(c["controller"], c["run_id"], c["status"]) for c in got["runs"]] == \
+        [("fuzzy", fuzzy, "stopped"), ("default", default, "complete"), ("pid", pid, "complete")]
+    assert old_default not in [c["run_id"] for c in got["runs"]]
+    assert got["scale"]["mae"] == pytest.approx(0.3) and got["scale"]["maxae"] == pytest.approx(10.0)
+    assert got["best"]["mae"] == "fuzzy" and got["best"]["maxae"] == "default"
+    assert set(got["scale"]) == set(got["best"]) == set(METRICS) and got["missing"] == []
+    # from the PID run's side, the latest complete fuzzy run is the one stopped: there is none
+    got = client.get(f"/api/runs/{pid}/comparison").json()
+    assert [c["controller"] for c in got["runs"]] == ["pid", "default"] and got["missing"] == ["fuzzy"]
+    # what cannot be compared is said, and what it is
+    friction = run("pid", 0.2, kind="rotary_friction")
+    r = client.get(f"/api/runs/{friction}/comparison")
+    assert r.status_code == 409 and r.json()["detail"] == \
+        f"run {friction} is not an exercise (kind 'rotary_friction'): only exercises are compared"
+    blank = store.run_started("workout", {"scenario": "SC-2", "controller": "pid", "target_nm": 1.2}, "")
+    r = client.get(f"/api/runs/{blank}/comparison")
+    assert r.status_code == 409 and r.json()["detail"].endswith("it is still running")
+    store.run_finished(blank, "stopped", {m: None for m in METRICS}, None)
+    assert client.get(f"/api/runs/{blank}/comparison").json()["detail"] == \
+        f"exercise {blank} has no metrics to compare: it ended (stopped) before any of its metrics could be scored"
+    assert client.get("/api/runs/999999/comparison").status_code == 404
+
+
 @pytest.fixture()
 def live_plots(tmp_path: Path) -> Iterator[tuple[Any, Any, int]]:
     """A station (not connected) with its viser live plots on a free port: (station, plots, port)."""

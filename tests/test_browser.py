@@ -13,6 +13,7 @@ import csv
 import io
 import math
 import os
+import re
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -237,6 +238,9 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     page.click("#stop")
     expect(page.locator("#state")).to_have_text("idle")
     expect(page.locator("#metrics")).to_be_visible(timeout=5000)
+    # "Exercise started (run N)." under Start is not left there once it has ended
+    expect(page.locator("#start-msg")).to_have_text(re.compile(r"^Exercise \d+ was stopped: its result is under "
+                                                                r"Last result\.$"))
     expect(page.locator("#last")).to_contain_text("stopped")
     # what the exercise was, as the history names it, not its number alone
     expect(page.locator("#last p").first).to_contain_text("(SC-1 · pid · 1.2 N·m, P-007): stopped")
@@ -248,6 +252,11 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     expect(row.locator("td").nth(1)).to_have_text("Exercise")
     expect(row.locator("td").nth(1)).to_have_attribute("title", "kind=workout")
     run_id = int(row.get_attribute("data-run") or 0)
+    # nothing yet to set the stopped PID run beside (tests/test_api.py has runs that are; the radar is
+    # drawn in test_an_exercise_is_drawn_beside_the_other_controllers_on_a_radar): said, and what would be
+    expect(page.locator(f"#last-compare-{run_id}")).to_have_text(
+        "No complete SC-1 at 1.2 N·m for P-007 yet with Default or Cascade fuzzy adaptive PID: such an "
+        "exercise, run to its end, is drawn here beside this one.")
     # the whole exercise stays on the page once the live chart has moved on: torque against target,
     # from the stored run, decimated to what the chart can draw
     trace = page.locator("#c-trace")
@@ -492,6 +501,66 @@ def _show_as_a_finished_run(page: Any, base: str, lr: dict[str, Any]) -> None:
     # alone, the box stayed on the newest stored run's notes under this result, as the README's picture showed
     page.evaluate("lr => { showLast(lr); return showRunNotes(lr.run_id); }", lr)
     expect(page.locator("#run-notes-box")).to_be_hidden()
+
+
+def test_an_exercise_is_drawn_beside_the_other_controllers_on_a_radar(station: tuple[str, str],
+                                                                      browser: object) -> None:
+    """Thesis Fig 4.26 in the dashboard: an exercise's six metrics beside each other controller's latest
+    like run (`GET /api/runs/{id}/comparison`, answered here as the station would, so that no three
+    exercises have to run in real time for it; tests/test_api.py checks what the station answers), each
+    axis scaled by its largest value, the best of each metric in bold, each controller a link to its run."""
+    from playwright.sync_api import Browser, Route, expect
+
+    assert isinstance(browser, Browser)
+    base, _viser = station
+    page = browser.new_page(viewport={"width": 1400, "height": 1000})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    metrics = {"fuzzy": [0.04, 0.28, 0.75, 0.004, 0.065, 0.43], "pid": [0.06, 0.41, 1.29, 0.0067, 0.082, 0.42],
+               "default": [0.046, 0.31, 0.93, 0.0041, 0.0645, 0.37]}
+    keys = ["mae", "iae", "itae", "evar", "rmse", "maxae"]
+    runs: list[dict[str, Any]] = [
+        {"controller": c, "run_id": 4242 - k, "status": "complete", "started": 1.8e9 + k,
+         "metrics": dict(zip(keys, metrics[c], strict=True))} for k, c in enumerate(("fuzzy", "pid", "default"))]
+    scale = {m: max(r["metrics"][m] for r in runs) for m in keys}
+    best = {m: min(runs, key=lambda r: r["metrics"][m])["controller"] for m in keys}
+    answer = {"run_id": 4242, "scenario": "SC-2", "target_nm": 1.2, "person": "P-009", "runs": runs,
+              "scale": scale, "best": best, "missing": []}
+
+    def comparison(route: Route) -> None:
+        route.fulfill(json=answer)
+
+    page.route("**/api/runs/4242/comparison", comparison)
+    page.goto(base)
+    _show_as_a_finished_run(page, base, {"run_id": 4242, "status": "complete", "metrics": runs[0]["metrics"],
+                                         "result": {}, "run": {"id": 4242, "kind": "workout", "has_series": False,
+                                                               "spec": {"scenario": "SC-2", "controller": "fuzzy",
+                                                                        "target_nm": 1.2}}})
+    box = page.locator("#last-compare-4242")
+    expect(box).to_contain_text("Compared with the other controllers: SC-2 at 1.2 N·m for P-009, each one's "
+                                "latest complete exercise")
+    radar = box.locator("svg[role=img]")
+    expect(radar.locator("polygon[data-controller]")).to_have_count(3)
+    # each vertex's distance from the centre is its metric over the largest of the three (the rim: 92 px)
+    for r in runs:
+        pts = radar.locator(f"polygon[data-controller={r['controller']}]").get_attribute("points") or ""
+        xy = np.array([[float(v) for v in p.split(",")] for p in pts.split()])
+        got = np.hypot(xy[:, 0] - 165, xy[:, 1] - 132) / 92
+        assert got == pytest.approx([r["metrics"][m] / scale[m] for m in keys], abs=0.002), r["controller"]
+        assert radar.locator(f"polygon[data-controller={r['controller']}]").get_attribute("data-run") == \
+            str(r["run_id"])
+    # the first axis (MAE) points up and is labelled with its rim
+    expect(radar.locator("text").first).to_have_text(f"MAEmax {scale['mae']:#.3g}")  # toPrecision(3)
+    table = box.locator("#compare-table")
+    expect(table.locator("th a")).to_have_text(["Cascade fuzzy adaptive PID", "Cascade PID", "Default"])
+    expect(table.locator("th small").first).to_have_text("run 4242 (this one)")
+    for i, m in enumerate(keys):
+        cells = table.locator("tr").nth(i + 1).locator("td")
+        bold = [cells.nth(1 + k).locator("b").count() for k in range(3)]
+        assert bold == [int(r["controller"] == best[m]) for r in runs], (m, bold)
+    assert best["maxae"] == "default" and best["mae"] == "fuzzy"  # the table's bold moves from column to column
+    assert table.locator("th a").nth(1).get_attribute("data-show-run") == "4241"
+    assert not errors, errors
 
 
 def test_a_friction_identification_shows_each_parameter_with_its_interval_and_both_models(

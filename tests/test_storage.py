@@ -263,7 +263,7 @@ def test_the_radar_compares_a_run_with_like_runs_only(url: str) -> None:
     """The viser radar sets a workout beside the latest complete run of each other controller for the
     same person, scenario and target: another person's arm, another target, or a run stopped half way
     (scored over what it reached) would make the controllers differ for reasons of their own."""
-    from app.api.liveplots import latest_per_controller
+    from app.api.compare import latest_per_controller
 
     store = Store(url)  # on PostgreSQL too where a server runs: the person filter is SQL
 

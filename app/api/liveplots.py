@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from viser._messages import GuiUpdateMessage
 
+from app.api.compare import latest_per_controller
 from app.engine.metrics import METRIC_LABELS, METRICS
 from app.engine.safety import SafetyLimits
 from app.engine.station import LIVE_COLUMNS, Station
@@ -275,40 +276,6 @@ class LivePlots:
         if self.store is None or run_id is None:
             return {}
         return latest_per_controller(self.store, int(run_id))
-
-
-def _drawable(metrics: Any) -> bool:
-    """Metrics a radar can draw: a metric a run could not give is stored as null, which has no radius."""
-    return bool(metrics) and all(isinstance(v, int | float) and math.isfinite(v) for v in metrics.values())
-
-
-def latest_per_controller(store: Any, run_id: int) -> dict[str, dict[str, float]]:
-    """The six metrics of a workout and of the latest run of each other controller to compare it with.
-
-    Only like with like: the same person (their arms, not the controllers, would differ otherwise),
-    scenario and target, and runs that went to their end (a stopped run is scored over the part it
-    reached). The run itself is shown whatever its ending, as the panel beside the radar shows it.
-
-    Args:
-        store: The run store.
-        run_id: The workout to compare.
-
-    Returns:
-        Controller → metrics; empty when the run has no metrics.
-    """
-    ref = store.run(run_id)
-    if ref is None or not _drawable(ref.get("metrics")):
-        return {}
-    spec = ref["spec"] or {}
-    sc, tg = spec.get("scenario"), spec.get("target_nm")
-    out: dict[str, dict[str, float]] = {str(spec.get("controller")): ref["metrics"]}
-    for r in store.runs(200, 0, "workout", person=ref.get("person") or ""):
-        s = r["spec"] or {}
-        if r["status"] == "complete" and _drawable(r.get("metrics")) and s.get("scenario") == sc \
-                and s.get("target_nm") == tg \
-                and s.get("controller") not in out:
-            out[s["controller"]] = r["metrics"]
-    return out
 
 
 def radar_image(values: dict[str, dict[str, float]]) -> np.ndarray:

@@ -519,6 +519,51 @@ class RunInfo(Documented):
                    has_series=bool(r["log_csv"]) and Path(r["log_csv"]).is_file())
 
 
+class ComparedRun(Documented):
+    """One exercise in a comparison.
+
+    Attributes:
+        controller: ``default``, ``pid`` or ``fuzzy``.
+        run_id: Run id.
+        status: How it ended (the others compared are ``complete``).
+        started: Start [Unix s].
+        metrics: The six metrics: MAE [N·m], IAE [N·m·s], ITAE [N·m·s²], e_var [N²·m²], RMSE [N·m],
+            Max AE [N·m].
+    """
+
+    controller: str
+    run_id: int
+    status: str
+    started: float
+    metrics: dict[str, float]
+
+
+class Comparison(Documented):
+    """An exercise beside the latest complete run of each other controller, like with like (thesis Fig 4.26).
+
+    Attributes:
+        run_id: The exercise compared.
+        scenario: Its scenario, which every run compared shares.
+        target_nm: Its target torque [N·m], which every run compared shares.
+        person: Its person, whom every run compared shares ("" for none named).
+        runs: The exercise first, then one run per other controller that has a complete one, the
+            latest (among the person's newest 200 exercises).
+        scale: Each metric's largest value among ``runs``: a radar chart's rim, as the thesis scales
+            its axes (the worst controller touches it).
+        best: Each metric's lowest value's controller (every metric is an error: lower is better).
+        missing: Controllers with no complete run to compare.
+    """
+
+    run_id: int
+    scenario: str | None
+    target_nm: float | None
+    person: str
+    runs: list[ComparedRun]
+    scale: dict[str, float]
+    best: dict[str, str]
+    missing: list[str]
+
+
 class Series(Documented):
     """A run's time series.
 

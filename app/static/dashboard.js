@@ -102,6 +102,14 @@ function render(st) {
     render.lastShown = JSON.stringify(st.last_run);
     shownRun = null;  // a run that just ended takes the panel back from one picked in the history
     showLast(st.last_run); loadRuns(); showRunNotes(st.last_run.run_id);
+    // "Exercise started" under the Start button had stayed there after the exercise ended
+    const lr = st.last_run;
+    if (sm.dataset.run === String(lr.run_id)) {
+      const ENDED = {complete: 'ran to its end', stopped: 'was stopped', fault: 'ended in a fault', interrupted: 'was interrupted'};
+      say('start-msg', `Exercise ${lr.run_id} ${ENDED[lr.status] || lr.status}: its result is under Last result.`,
+          lr.status === 'complete' || lr.status === 'stopped');
+      delete sm.dataset.run;
+    }
     if ($('session').value) loadSessions($('session').value);  // its run count
   } else if (!st.last_run && render.lastShown === undefined) {
     // a station restarted since its last run keeps none in memory, and the panel had said "No run
@@ -147,12 +155,14 @@ function showLast(lr) {
     // how far the arm went, beside how well the torque was tracked
     const rng = $(`last-range-${lr.run_id}`), ar = run && run.result && run.result.angle_range_deg;
     if (rng && Array.isArray(ar) && ar.length === 2) { rng.textContent = `Range of motion reached: ${rangeWords(ar)}.`; rng.hidden = false; }
+    if (run && run.kind === 'workout' && lr.metrics) drawComparison(lr.run_id);
   });
   if (lr.metrics) {
     const part = r.partial ? ` — scored over the ${(r.window_s[1] - r.window_s[0]).toFixed(1)} s reached before the stop` : '';
     $('last').innerHTML = `<p>Exercise ${esc(lr.run_id)}<span id="last-what-${esc(lr.run_id)}"></span>: ${esc(lr.status)}${esc(part)}</p><table id="metrics">` +
       Object.entries(METRICS).map(([k, l]) => `<tr><td>${l}</td><td>${fmt(lr.metrics[k], 4)}</td></tr>`).join('') +  // null: a metric the run could not give
-      `</table><p id="last-range-${esc(lr.run_id)}" hidden></p><p id="last-warn-${esc(lr.run_id)}" class="msg bad" hidden></p>`;
+      `</table><p id="last-range-${esc(lr.run_id)}" hidden></p><p id="last-warn-${esc(lr.run_id)}" class="msg bad" hidden></p>` +
+      `<div id="last-compare-${esc(lr.run_id)}" class="compare" hidden></div>`;
   } else if (r.parameters && ('filling' in r.parameters || 'exhausting' in r.parameters)) {
     showValve(lr);
   } else if (r.parameters && 'ki' in r.parameters) {
@@ -168,6 +178,67 @@ function showLast(lr) {
     $('last').textContent = `Run ${lr.run_id}: ${lr.status}` + (r.note ? ` (${r.note})` : '') + (r.error ? ` (${r.error})` : '');
   }
 }
+
+// The exercise beside each other controller's latest complete run on the same scenario, target and person,
+// as the thesis's radar charts set them (Fig 4.26): each axis scaled by its largest value among them, so
+// the worst touches the rim; every metric is an error, so the smaller shape is the better controller.
+const CONTROLLERS = {default: ['Default', '#d62728', '7 4'], pid: ['Cascade PID', '#1f77b4', '2 3'],
+                     fuzzy: ['Cascade fuzzy adaptive PID', '#2ca02c', '']};
+async function drawComparison(id) {
+  let c;
+  try { c = await api('GET', `/api/runs/${id}/comparison`); } catch (e) { return; }  // nothing to compare: no chart
+  const box = $(`last-compare-${id}`);
+  if (!box) return;  // another result was shown meanwhile
+  const name = k => (CONTROLLERS[k] || [k])[0];
+  const what = `${c.scenario} at ${c.target_nm} N·m${c.person ? ' for ' + c.person : ''}`;
+  const missing = c.missing.length ? `<p class="msg">No complete ${esc(what)} yet with ${esc(c.missing.map(name).join(' or '))}: ` +
+    'such an exercise, run to its end, is drawn here beside this one.</p>' : '';
+  box.hidden = false;
+  if (c.runs.length < 2) { box.innerHTML = missing; return; }
+  const keys = Object.keys(METRICS).filter(k => k in c.scale);
+  const W = 330, H = 270, cx = W / 2, cy = 132, R = 92;
+  const pt = (k, r) => { const a = -Math.PI / 2 + 2 * Math.PI * k / keys.length;  // the first axis up, clockwise
+    return [cx + r * Math.cos(a), cy + r * Math.sin(a)]; };
+  const ring = f => keys.map((_, k) => pt(k, R * f).map(v => v.toFixed(1)).join(',')).join(' ');
+  let svg = [0.25, 0.5, 0.75, 1].map(f => `<polygon points="${ring(f)}" fill="none" stroke="#d5dbe3"/>`).join('');
+  keys.forEach((m, k) => {
+    const [x, y] = pt(k, R), [lx, ly] = pt(k, R + 16);
+    const anchor = Math.abs(lx - cx) < 5 ? 'middle' : lx > cx ? 'start' : 'end';
+    svg += `<line x1="${cx}" y1="${cy}" x2="${x.toFixed(1)}" y2="${y.toFixed(1)}" stroke="#d5dbe3"/>` +
+      `<text x="${lx.toFixed(1)}" y="${(ly - 5).toFixed(1)}" font-size="11" text-anchor="${anchor}">${esc(METRICS[m].replace(/ \[.*\]$/, ''))}` +
+      `<tspan x="${lx.toFixed(1)}" dy="12" fill="#5b6776" font-size="10">max ${fmt(c.scale[m])}</tspan></text>`;
+  });
+  [...c.runs].reverse().forEach(r => {  // the exercise itself drawn last, on top
+    const [nm, col, dash] = CONTROLLERS[r.controller] || [r.controller, '#333', ''];
+    const pts = keys.map((m, k) => pt(k, R * r.metrics[m] / c.scale[m]).map(v => v.toFixed(1)).join(',')).join(' ');
+    svg += `<polygon points="${pts}" fill="${col}" fill-opacity="0.08" stroke="${col}" stroke-width="2" stroke-dasharray="${dash}" ` +
+      `data-controller="${esc(r.controller)}" data-run="${r.run_id}"><title>${esc(nm)}, run ${r.run_id}</title></polygon>`;
+  });
+  // each column's head is the chart's legend: the controller's line as drawn, its name (a link to that run)
+  const head = c.runs.map(r => {
+    const [nm, col, dash] = CONTROLLERS[r.controller] || [r.controller, '#333', ''];
+    return `<th><svg width="24" height="8" aria-hidden="true"><line x1="0" y1="4" x2="24" y2="4" stroke="${col}" stroke-width="2" ` +
+      `stroke-dasharray="${dash}"/></svg> <a href="#" data-show-run="${r.run_id}" style="color:${col}">${esc(nm)}</a><br>` +
+      `<small class="muted">run ${r.run_id}${r.run_id === c.run_id ? ' (this one)' : ''}</small></th>`;
+  }).join('');
+  const rows = keys.map(m => `<tr><td>${METRICS[m]}</td>` + c.runs.map(r => {
+    const v = fmt(r.metrics[m], 3);
+    return `<td>${c.best[m] === r.controller ? `<b>${v}</b>` : v}</td>`;
+  }).join('') + '</tr>').join('');
+  box.innerHTML = `<p style="margin-bottom:.2rem">Compared with the other controllers: ${esc(what)}, each one's latest complete exercise ` +
+    '(smaller is better; the best of each metric in bold).</p>' +
+    '<div style="display:flex;flex-wrap:wrap;gap:1rem;align-items:flex-start">' +
+    `<svg width="${W}" height="${H}" role="img" aria-label="radar chart comparing the controllers">${svg}</svg>` +
+    `<div style="flex:1 1 16rem"><table id="compare-table"><tr><th>metric</th>${head}</tr>${rows}</table>` +
+    '<p class="msg">Each axis of the chart is scaled by its largest value among these runs, which touches the rim.</p></div></div>' + missing;
+}
+// a run named in a comparison: its own result, as a click on it in the history shows it
+$('last').addEventListener('click', ev => {
+  const a = ev.target.closest('a[data-show-run]');
+  if (!a) return;
+  ev.preventDefault();
+  showRun(a.dataset.showRun).catch(e => { $('hist-msg').className = 'msg bad'; $('hist-msg').textContent = `run ${a.dataset.showRun}: ${e.message}`; });
+});
 
 // An exercise's whole trace, once it ended: the live chart moves on with the idle rig, and a run picked
 // in the history is long gone from it. The torque against its target, the scored window tinted.
@@ -492,7 +563,9 @@ document.querySelectorAll('[data-action]').forEach(b => b.addEventListener('clic
       if ($('gains-set').value) body.gains_id = parseInt($('gains-set').value);
       if ($('workout-set').value) body.workout_id = parseInt($('workout-set').value);
       const r = await api('POST', '/api/engine/start', body);
-      say('start-msg', `Exercise started (run ${r.run_id}).`, true); render(r.status);
+      say('start-msg', `Exercise started (run ${r.run_id}).`, true);
+      $('start-msg').dataset.run = r.run_id;  // said again in other words when it ends
+      render(r.status);
     } else if (a === 'connect') {
       const [rig, cylinder] = $('rig').value.split(':');
       render(await api('POST', '/api/engine/connect', cylinder ? {rig, cylinder} : {rig}));

@@ -17,9 +17,10 @@ from fastapi.responses import FileResponse, Response
 from pydantic import Field, ValidationError
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ, THERAPIST
+from app.api.compare import CONTROLLERS, compared_runs, radar_scale
 from app.api.deps import IdPath, StoreDep, completed_diagnosis
 from app.api.diagnosis_report import DiagnosisReport
-from app.api.models import Documented, NotesIn, PersonFilter, RunInfo, Series
+from app.api.models import ComparedRun, Comparison, Documented, NotesIn, PersonFilter, RunInfo, Series
 from app.engine.params import ParameterError
 from app.engine.station import RunKind
 from app.storage import StoreUnavailable
@@ -139,6 +140,33 @@ def run_detail(run_id: IdPath, store: StoreDep) -> RunInfo:
     an identification's parameters with their intervals and test points, a tuning's gains and loops, a
     diagnosis's report. `has_series`: whether a log is stored for `…/series` and `…/export`."""
     return RunInfo.from_row(_get(store, run_id))
+
+
+@router.get("/{run_id}/comparison", response_model=Comparison,
+            responses={404: {"description": "No such run"},
+                       409: {"description": "The run is not an exercise, or has no metrics to compare"}},
+            summary="An exercise beside each other controller's latest like run (the radar chart's data)")
+def comparison(run_id: IdPath, store: StoreDep) -> Comparison:
+    """The thesis's radar charts set the three controllers side by side on one scenario and target. This
+    sets an exercise beside the latest complete run of each other controller for the same person,
+    scenario and target (another person's arm or a run cut short would differ for reasons of its own),
+    with each metric's largest value among them (the radar's rim) and its lowest's controller."""
+    r = _get(store, run_id)
+    if r["kind"] != "workout":
+        raise HTTPException(409, f"run {run_id} is not an exercise (kind {r['kind']!r}): only exercises are "
+                                 "compared")
+    runs = compared_runs(store, run_id)
+    if not runs:
+        why = "it is still running" if r["status"] == "running" else \
+            f"it ended ({r['status']}) before any of its metrics could be scored"
+        raise HTTPException(409, f"exercise {run_id} has no metrics to compare: {why}")
+    scale = radar_scale(runs)
+    spec = r["spec"] or {}
+    have = {c["controller"] for c in runs}
+    return Comparison(run_id=run_id, scenario=spec.get("scenario"), target_nm=spec.get("target_nm"),
+                      person=r["person"] or "", runs=[ComparedRun(**c) for c in runs], scale=scale,
+                      best={m: min(runs, key=lambda c: c["metrics"][m])["controller"] for m in scale},
+                      missing=[c for c in CONTROLLERS if c not in have])
 
 
 @router.get("/{run_id}/report", response_model=DiagnosisReport, response_model_exclude_unset=True,  # as stored
