@@ -766,6 +766,43 @@ def test_the_3d_handle_turns_with_the_measured_angle_between_the_end_stops_the_s
         narrow.stop()
 
 
+def test_on_the_linear_rig_the_3d_view_shows_the_cylinder_and_its_rod_extends_with_the_position(
+        live_plots: tuple[Any, Any, int]) -> None:
+    """The linear test cylinder's position column holds the piston's travel [m], not an angle: the 3-D
+    view had turned the forearm's handle by it. There a cylinder of the catalogue's stroke is drawn, its
+    rod out by the measured travel, and the first chart names a force."""
+    from app.engine.station import Rig
+    from tests.conftest import viser_viewer
+
+    st, plots, port = live_plots
+    viewer = viser_viewer(port)
+    try:
+        deadline = time.monotonic() + 10
+        while not plots._viewers:
+            assert time.monotonic() < deadline, "the viewer was not counted"
+            time.sleep(0.01)
+        st.rig = Rig("linear", "C1")  # as a connect to the linear rig sets it
+        for k, x in enumerate((0.1234, 0.05)):
+            st.live.append((2 * k * 0.005, 5.0, math.nan, 2.0, 1.0, math.nan, math.nan, 0.01, x))
+            st.live.append(((2 * k + 1) * 0.005, 5.0, math.nan, 2.0, 1.0, math.nan, math.nan, 0.01, x))
+            plots.publish()
+            assert (plots.h_rotary.visible, plots.h_cylinder.visible) == (False, True)
+            # C1: FESTO DSNUP-25-225, a 225 mm stroke; the rod's frame sits at the piston
+            np.testing.assert_allclose(plots.h_rod.position, (x - 0.225 / 2, 0.0, 0.0), atol=1e-6)
+            assert plots.h_extension.text == f"extension: {1000 * x:.0f} of 225 mm"
+        assert plots.h_torque.title == "Cylinder force" and plots.h_torque.series[1]["label"] == "F [N]"
+        assert plots.h_speed.series[1]["label"] == "v [m/s]"
+        np.testing.assert_allclose(plots.h_handle.wxyz, (1.0, 0.0, 0.0, 0.0))  # the handle was left alone
+        st.rig = Rig()  # back on the forearm robot
+        st.live.append((0.02, 0.0, 0.5, 2.0, 2.0, 2.0, 2.0, 0.0, 0.3))
+        plots.publish()
+        assert (plots.h_rotary.visible, plots.h_cylinder.visible) == (True, False)
+        assert plots.h_angle.text == "angle: +17°"
+        assert plots.h_torque.series[1]["label"] == "T_i [N·m]" and plots.h_speed.series[1]["label"] == "ω [rad/s]"
+    finally:
+        viewer.close()
+
+
 def test_the_viser_page_shows_the_station_state_and_its_e_stop_acts_without_a_3d_view(
         live_plots: tuple[Any, Any, int]) -> None:
     """A therapist watching the live plots stops the rig from that page. viser runs a button's

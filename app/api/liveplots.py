@@ -17,6 +17,7 @@ from viser._messages import GuiUpdateMessage
 
 from app.api.compare import latest_per_controller
 from app.engine.metrics import METRIC_LABELS, METRICS
+from app.engine.params import LinearCylinder
 from app.engine.safety import SafetyLimits
 from app.engine.station import LIVE_COLUMNS, Station
 
@@ -137,6 +138,8 @@ class LivePlots:
                                      label="Metrics radar (this run, and each other controller's latest complete run "
                                            "for the same person, scenario and target)", visible=False)
         self._build_scene()
+        self._build_cylinder(0.3)
+        self._rig_shown = ("rotary", "")
 
     def _build_scene(self) -> None:
         """The handle on its shaft, over the range it may turn through.
@@ -147,7 +150,7 @@ class LivePlots:
         A label on the shaft gives the measured angle in degrees.
         """
         scene = self.server.scene
-        scene.add_frame("/rig", show_axes=False)
+        self.h_rotary = scene.add_frame("/rig", show_axes=False)
         scene.add_box("/rig/base", color=(120, 120, 130), dimensions=(0.12, 0.12, 0.06), position=(0.0, 0.0, -0.05))
         self.h_handle = scene.add_frame("/rig/handle", show_axes=False)
         scene.add_box("/rig/handle/grip", color=(30, 110, 200), dimensions=(0.03, 0.18, 0.03))
@@ -181,6 +184,42 @@ class LivePlots:
         label_at = on_arc(np.array([min(half, math.pi / 2), -min(half, math.pi / 2)])) * 1.3
         scene.add_label("/rig/pronation", "pronation (+)", position=(*label_at[0, :2], z))
         scene.add_label("/rig/supination", "supination (−)", position=(*label_at[1, :2], z))
+
+    def _build_cylinder(self, stroke: float) -> None:
+        """The linear rig: a cylinder along x whose rod extends by the measured position.
+
+        Args:
+            stroke: The cylinder's stroke [m]; the piston runs from 0 (retracted) to it.
+        """
+        scene = self.server.scene
+        self._stroke = stroke
+        self.h_cylinder = scene.add_frame("/cylinder", show_axes=False, visible=False)
+        # the barrel a little see-through, so that the piston is seen inside it
+        scene.add_box("/cylinder/barrel", color=(150, 155, 165), dimensions=(stroke + 0.04, 0.05, 0.05),
+                      opacity=0.35)
+        self.h_rod = scene.add_frame("/cylinder/rod", show_axes=False, position=(-stroke / 2.0, 0.0, 0.0))
+        scene.add_box("/cylinder/rod/piston", color=(30, 110, 200), dimensions=(0.012, 0.046, 0.046))
+        scene.add_box("/cylinder/rod/bar", color=(200, 200, 210), dimensions=(stroke + 0.05, 0.012, 0.012),
+                      position=((stroke + 0.05) / 2.0, 0.0, 0.0))
+        self.h_extension = scene.add_label("/cylinder/extension", "extension: –", position=(0.0, 0.0, 0.06))
+        self._pos = math.nan
+
+    def _show_rig(self, kind: str, cylinder: str) -> None:
+        """The 3-D view and the first charts' names for the rig the station drives: the forearm's handle,
+        or on the linear and valve set-ups a cylinder, whose load cell measures a force along its rod."""
+        rotary = kind == "rotary"
+        if not rotary:
+            key = cylinder if cylinder in ("C1", "C2", "C3") else "C3"
+            self._build_cylinder(LinearCylinder.catalogue(key).stroke)  # type: ignore[arg-type]
+        self.h_rotary.visible = rotary
+        self.h_cylinder.visible = not rotary
+        self.h_torque.title = "Interaction torque vs target" if rotary else "Cylinder force"
+        self.h_torque.series = (({"label": "t [s]"}, _series("T_i [N·m]", "#1f77b4"),
+                                 _series("target [N·m]", "#d62728", dash=True)) if rotary else
+                                ({"label": "t [s]"}, _series("F [N]", "#1f77b4"),
+                                 _series("(no target)", "#d62728", dash=True)))
+        self.h_speed.series = ({"label": "t [s]"}, _series("ω [rad/s]" if rotary else "v [m/s]", "#ff7f0e"))
+        self._theta = self._pos = math.nan  # re-posed at the next push
 
     def _on_gui_update(self, _client_id: int, message: GuiUpdateMessage) -> None:
         if message.uuid == self.h_estop._impl.uuid:
@@ -220,6 +259,10 @@ class LivePlots:
             self._state_shown = state
             fault = f" ({self.station.fault_message})" if state == "fault" and self.station.fault_message else ""
             self.h_state.content = f"Station: **{state}**{fault}"
+        rig = self.station.rig
+        if (rig.kind, rig.cylinder) != self._rig_shown:
+            self._rig_shown = (rig.kind, rig.cylinder)
+            self._show_rig(rig.kind, rig.cylinder)
         last = self.station.last_run
         if last is not None and last is not self._last_run:
             self._last_run = last
@@ -246,7 +289,13 @@ class LivePlots:
                 err = np.where(np.abs(tgt) > 0, 100.0 * (tgt - tq) / np.abs(tgt), 0.0)
             self.h_err.data = (t, np.nan_to_num(err, nan=0.0, posinf=0.0, neginf=0.0))
             th = float(r[-1, _COL["theta"]])
-            if not abs(th - self._theta) < HANDLE_STEP_RAD:  # also true for the first (NaN)
+            if self._rig_shown[0] != "rotary":  # the position column holds the piston's [m]
+                if not abs(th - self._pos) < 1e-3:  # a whole millimetre, as the label reads it
+                    self._pos = th
+                    x = min(max(th, 0.0), self._stroke)
+                    self.h_rod.position = (x - self._stroke / 2.0, 0.0, 0.0)
+                    self.h_extension.text = f"extension: {1000 * th:.0f} of {1000 * self._stroke:.0f} mm"
+            elif not abs(th - self._theta) < HANDLE_STEP_RAD:  # also true for the first (NaN)
                 self._theta = th
                 self.h_handle.wxyz = (math.cos(th / 2.0), 0.0, 0.0, math.sin(th / 2.0))
                 text = f"angle: {math.degrees(th):+.0f}°"
