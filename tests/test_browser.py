@@ -574,6 +574,14 @@ def test_an_exercise_is_drawn_beside_the_other_controllers_on_a_radar(station: t
         assert bold == [int(r["controller"] == best[m]) for r in runs], (m, bold)
     assert best["maxae"] == "default" and best["mae"] == "fuzzy"  # the table's bold moves from column to column
     assert table.locator("th a").nth(1).get_attribute("data-show-run") == "4241"
+    # saved for a report: the drawing as a file of its own, its legend inside it
+    with page.expect_download() as dl:
+        box.get_by_text("Save the chart (SVG)").click()
+    assert dl.value.suggested_filename == "comparison-run-4242.svg"
+    saved = Path(dl.value.path()).read_text()
+    assert saved.startswith('<?xml version="1.0" encoding="UTF-8"?>') and saved.count("<polygon") == 4 + 3
+    for text in ("Cascade fuzzy adaptive PID, run 4242 (this one)", "Cascade PID, run 4241", "Default, run 4240"):
+        assert text in saved, text
     assert not errors, errors
 
 

@@ -196,7 +196,7 @@ async function drawComparison(id) {
   box.hidden = false;
   if (c.runs.length < 2) { box.innerHTML = missing; return; }
   const keys = Object.keys(METRICS).filter(k => k in c.scale);
-  const W = 330, H = 270, cx = W / 2, cy = 132, R = 92;
+  const W = 330, H = 266 + 15 * c.runs.length, cx = W / 2, cy = 132, R = 92;
   const pt = (k, r) => { const a = -Math.PI / 2 + 2 * Math.PI * k / keys.length;  // the first axis up, clockwise
     return [cx + r * Math.cos(a), cy + r * Math.sin(a)]; };
   const ring = f => keys.map((_, k) => pt(k, R * f).map(v => v.toFixed(1)).join(',')).join(' ');
@@ -207,6 +207,12 @@ async function drawComparison(id) {
     svg += `<line x1="${cx}" y1="${cy}" x2="${x.toFixed(1)}" y2="${y.toFixed(1)}" stroke="#d5dbe3"/>` +
       `<text x="${lx.toFixed(1)}" y="${(ly - 5).toFixed(1)}" font-size="11" text-anchor="${anchor}">${esc(METRICS[m].replace(/ \[.*\]$/, ''))}` +
       `<tspan x="${lx.toFixed(1)}" dy="12" fill="#5b6776" font-size="10">max ${fmt(c.scale[m])}</tspan></text>`;
+  });
+  // a legend inside the drawing too, so that the saved chart stands on its own
+  c.runs.forEach((r, k) => {
+    const [nm, col, dash] = CONTROLLERS[r.controller] || [r.controller, '#333', ''], y = 268 + 15 * k;
+    svg += `<line x1="20" y1="${y}" x2="44" y2="${y}" stroke="${col}" stroke-width="2" stroke-dasharray="${dash}"/>` +
+      `<text x="50" y="${y + 4}" font-size="11">${esc(nm)}, run ${r.run_id}${r.run_id === c.run_id ? ' (this one)' : ''}</text>`;
   });
   [...c.runs].reverse().forEach(r => {  // the exercise itself drawn last, on top
     const [nm, col, dash] = CONTROLLERS[r.controller] || [r.controller, '#333', ''];
@@ -228,12 +234,24 @@ async function drawComparison(id) {
   box.innerHTML = `<p style="margin-bottom:.2rem">Compared with the other controllers: ${esc(what)}, each one's latest complete exercise ` +
     '(smaller is better; the best of each metric in bold).</p>' +
     '<div style="display:flex;flex-wrap:wrap;gap:1rem;align-items:flex-start">' +
-    `<svg width="${W}" height="${H}" role="img" aria-label="radar chart comparing the controllers">${svg}</svg>` +
+    `<svg width="${W}" height="${H}" role="img" aria-label="radar chart comparing the controllers" xmlns="http://www.w3.org/2000/svg" ` +
+    `font-family="system-ui, sans-serif"><title>${esc(what)}: ${esc(c.runs.map(r => `${name(r.controller)} (run ${r.run_id})`).join(', '))}</title>${svg}</svg>` +
     `<div style="flex:1 1 16rem"><table id="compare-table"><tr><th>metric</th>${head}</tr>${rows}</table>` +
-    '<p class="msg">Each axis of the chart is scaled by its largest value among these runs, which touches the rim.</p></div></div>' + missing;
+    '<p class="msg">Each axis of the chart is scaled by its largest value among these runs, which touches the rim. ' +
+    `<a href="#" data-svg="${c.run_id}">Save the chart (SVG)</a></p></div></div>` + missing;
 }
 // a run named in a comparison: its own result, as a click on it in the history shows it
 $('last').addEventListener('click', ev => {
+  // the radar as a file for a report: the drawing itself, its legend in its title
+  const save = ev.target.closest('a[data-svg]');
+  if (save) {
+    ev.preventDefault();
+    const svg = save.closest('.compare').querySelector('svg[role=img]');
+    const url = URL.createObjectURL(new Blob(['<?xml version="1.0" encoding="UTF-8"?>\n' + svg.outerHTML], {type: 'image/svg+xml'}));
+    const tmp = document.createElement('a'); tmp.href = url; tmp.download = `comparison-run-${save.dataset.svg}.svg`;
+    tmp.click(); setTimeout(() => URL.revokeObjectURL(url), 1000);
+    return;
+  }
   const a = ev.target.closest('a[data-show-run]');
   if (!a) return;
   ev.preventDefault();
