@@ -661,10 +661,23 @@ def live_plots(tmp_path: Path) -> Iterator[tuple[Any, Any, int]]:
         plots.stop()
 
 
+def _counted_viewer(plots: Any, port: int) -> Any:
+    """A bare websocket on the live plots (no 3-D view, no camera), once the publisher counts it as watching."""
+    from tests.conftest import viser_viewer
+
+    viewer = viser_viewer(port)
+    deadline = time.monotonic() + 10
+    while not plots._viewers:
+        if time.monotonic() > deadline:
+            viewer.close()
+            raise AssertionError("the viewer was not counted")
+        time.sleep(0.01)
+    return viewer
+
+
 def test_the_viser_publisher_never_sends_nan(live_plots: tuple[Any, Any, int]) -> None:
     # uPlot blanks a whole chart when a binary series holds NaN: before an exercise the buffer has
     # no target or references, and those charts must still draw
-    from tests.conftest import viser_viewer
 
     st, plots, port = live_plots
     viewer = None
@@ -685,11 +698,7 @@ def test_the_viser_publisher_never_sends_nan(live_plots: tuple[Any, Any, int]) -
         assert np.asarray(plots.h_torque.data[0]).size == 2  # still the placeholder built at start-up
         assert "Run 7" in plots.h_metrics.content and "| e_var [N²·m²] | – |" in plots.h_metrics.content
         assert "| MAE [N·m] | 0.05 |" in plots.h_metrics.content
-        viewer = viser_viewer(port)
-        deadline = time.monotonic() + 10
-        while not plots._viewers:  # a bare websocket (no 3-D view, no camera) counts as watching
-            assert time.monotonic() < deadline, "the viewer was not counted"
-            time.sleep(0.01)
+        viewer = _counted_viewer(plots, port)  # a bare websocket counts as watching
         plots.publish()
         for h in (plots.h_torque, plots.h_press, plots.h_speed, plots.h_err):
             assert all(np.all(np.isfinite(np.asarray(a))) for a in h.data), h
@@ -737,7 +746,6 @@ def test_the_3d_handle_turns_with_the_measured_angle_between_the_end_stops_the_s
     thesis's rig, or as a configuration sets it)."""
     from app.api.liveplots import LivePlots
     from app.engine.station import Station
-    from tests.conftest import viser_viewer
 
     def stop_angles(plots: Any) -> list[float]:
         pts = np.asarray(plots.h_stops.points)  # (stop, end of the tick, xyz); the thumb points along +y at 0
@@ -745,12 +753,8 @@ def test_the_3d_handle_turns_with_the_measured_angle_between_the_end_stops_the_s
 
     st, plots, port = live_plots
     assert stop_angles(plots) == pytest.approx([-135.0, 135.0], abs=1e-3)
-    viewer = viser_viewer(port)
+    viewer = _counted_viewer(plots, port)
     try:
-        deadline = time.monotonic() + 10
-        while not plots._viewers:
-            assert time.monotonic() < deadline, "the viewer was not counted"
-            time.sleep(0.01)
         for k, th in enumerate((0.3, -0.5)):  # pronation, then supination
             st.live.append((2 * k * 0.005, 0.0, 0.5, 2.0, 2.0, 2.0, 2.0, 0.0, th))
             st.live.append(((2 * k + 1) * 0.005, 0.0, 0.5, 2.0, 2.0, 2.0, 2.0, 0.0, th))
@@ -772,15 +776,10 @@ def test_on_the_linear_rig_the_3d_view_shows_the_cylinder_and_its_rod_extends_wi
     view had turned the forearm's handle by it. There a cylinder of the catalogue's stroke is drawn, its
     rod out by the measured travel, and the first chart names a force."""
     from app.engine.station import Rig
-    from tests.conftest import viser_viewer
 
     st, plots, port = live_plots
-    viewer = viser_viewer(port)
+    viewer = _counted_viewer(plots, port)
     try:
-        deadline = time.monotonic() + 10
-        while not plots._viewers:
-            assert time.monotonic() < deadline, "the viewer was not counted"
-            time.sleep(0.01)
         st.rig = Rig("linear", "C1")  # as a connect to the linear rig sets it
         for k, x in enumerate((0.1234, 0.05)):
             st.live.append((2 * k * 0.005, 5.0, math.nan, 2.0, 1.0, math.nan, math.nan, 0.01, x))
