@@ -208,9 +208,9 @@ class LivePlots:
         """The 3-D view and the first charts' names for the rig the station drives: the forearm's handle,
         or on the linear and valve set-ups a cylinder, whose load cell measures a force along its rod."""
         rotary = kind == "rotary"
-        if not rotary:
-            key = cylinder if cylinder in ("C1", "C2", "C3") else "C3"
-            self._build_cylinder(LinearCylinder.catalogue(key).stroke)  # type: ignore[arg-type]
+        if not rotary:  # a real rig ignores the catalogue's name: drawn as the thesis's C3 then
+            self._build_cylinder(LinearCylinder.catalogue("C1" if cylinder == "C1" else "C2" if cylinder == "C2"
+                                                          else "C3").stroke)
         self.h_rotary.visible = rotary
         self.h_cylinder.visible = not rotary
         self.h_torque.title = "Interaction torque vs target" if rotary else "Cylinder force"

@@ -242,7 +242,7 @@ async function drawComparison(id) {
 }
 // a run named in a comparison: its own result, as a click on it in the history shows it
 $('last').addEventListener('click', ev => {
-  // the radar as a file for a report: the drawing itself, its legend in its title
+  // the radar as a file for a report: the drawing itself, with the legend drawn inside it
   const save = ev.target.closest('a[data-svg]');
   if (save) {
     ev.preventDefault();
