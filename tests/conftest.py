@@ -34,7 +34,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """``--heavy-files-first``: the files with the most slow tests go out first.
 
-    ``./dev test`` hands whole files to its two workers (``--dist loadfile``),
+    ``./dev test`` hands whole files to its workers (``--dist loadfile``),
     one as each worker runs low, so a module-scoped fixture is built once (the
     DCV grid's takes ≈ 110 s; handed out test by test, two workers each built
     it). In collection order the last file out could be a long one and leave
