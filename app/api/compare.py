@@ -24,7 +24,7 @@ def drawable(metrics: Any) -> bool:
     return bool(metrics) and all(isinstance(v, int | float) and math.isfinite(v) for v in metrics.values())
 
 
-def compared_runs(store: Any, run_id: int) -> list[dict[str, Any]]:
+def compared_runs(store: Any, ref: dict[str, Any]) -> list[dict[str, Any]]:
     """An exercise and the latest run of each other controller to compare it with, the exercise first.
 
     Only like with like: the same person (their arms, not the controllers, would differ otherwise),
@@ -33,14 +33,13 @@ def compared_runs(store: Any, run_id: int) -> list[dict[str, Any]]:
 
     Args:
         store: The run store.
-        run_id: The exercise to compare.
+        ref: The exercise to compare, as the store holds it (``Store.run``).
 
     Returns:
         One entry per controller: ``controller``, ``run_id``, ``status``, ``started`` [Unix s] and
-        ``metrics``; empty when the run does not exist or has no metrics a radar can draw.
+        ``metrics``; empty when the run is not an exercise or has no metrics a radar can draw.
     """
-    ref = store.run(run_id)
-    if ref is None or ref["kind"] != "workout" or not drawable(ref.get("metrics")):
+    if ref["kind"] != "workout" or not drawable(ref.get("metrics")):
         return []
     spec = ref["spec"] or {}
     sc, tg = spec.get("scenario"), spec.get("target_nm")
@@ -61,8 +60,10 @@ def compared_runs(store: Any, run_id: int) -> list[dict[str, Any]]:
 
 
 def latest_per_controller(store: Any, run_id: int) -> dict[str, dict[str, float]]:
-    """:func:`compared_runs` as controller → metrics (what a radar chart draws); empty without metrics."""
-    return {r["controller"]: r["metrics"] for r in compared_runs(store, run_id)}
+    """:func:`compared_runs` of run ``run_id`` as controller → metrics (what a radar chart draws); empty
+    when there is no such run or it has no metrics."""
+    ref = store.run(run_id)
+    return {} if ref is None else {r["controller"]: r["metrics"] for r in compared_runs(store, ref)}
 
 
 def radar_scale(runs: list[dict[str, Any]]) -> dict[str, float]:

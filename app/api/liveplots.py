@@ -68,6 +68,18 @@ PRESSURE_SCALES = _soft_y(1.0, 1.2)
 ERROR_SCALES = _soft_y(-10.0, 10.0)
 
 
+def _rig_charts(rotary: bool) -> tuple[str, tuple[Any, ...], tuple[Any, ...]]:
+    """The first chart's title and series and the speed chart's series, for the forearm's handle or, on
+    the linear and valve set-ups, a cylinder whose load cell measures a force along its rod."""
+    if rotary:
+        return ("Interaction torque vs target",
+                ({"label": "t [s]"}, _series("T_i [N·m]", "#1f77b4"), _series("target [N·m]", "#d62728", dash=True)),
+                ({"label": "t [s]"}, _series("ω [rad/s]", "#ff7f0e")))
+    return ("Cylinder force",
+            ({"label": "t [s]"}, _series("F [N]", "#1f77b4"), _series("(no target)", "#d62728", dash=True)),
+            ({"label": "t [s]"}, _series("v [m/s]", "#ff7f0e")))
+
+
 def _series(label: str, color: str, dash: bool = False) -> Any:
     s: dict[str, Any] = {"label": label, "stroke": color, "width": 2}
     if dash:
@@ -113,11 +125,9 @@ class LivePlots:
         self.h_estop = gui.add_button("E-STOP", color="red", hint=ESTOP_HINT)
         ws.register_handler(GuiUpdateMessage, self._on_gui_update)
         z = (np.zeros(2), np.zeros(2))
-        self.h_torque = gui.add_uplot(data=(np.zeros(2), np.zeros(2), np.zeros(2)),
-                                      series=({"label": "t [s]"}, _series("T_i [N·m]", "#1f77b4"),
-                                              _series("target [N·m]", "#d62728", dash=True)),
-                                      title="Interaction torque vs target", aspect=1.5, scales=TORQUE_SCALES,
-                                      padding=PADDING)
+        title, force, speed = _rig_charts(rotary=True)
+        self.h_torque = gui.add_uplot(data=(np.zeros(2), np.zeros(2), np.zeros(2)), series=force, title=title,
+                                      aspect=1.5, scales=TORQUE_SCALES, padding=PADDING)
         self.h_press = gui.add_uplot(data=(np.zeros(2),) * 5,
                                      series=({"label": "t [s]"}, _series("P_a [bar]", "#2ca02c"),
                                              _series("P_a ref [bar]", "#2ca02c", dash=True),
@@ -125,8 +135,8 @@ class LivePlots:
                                              _series("P_b ref [bar]", "#9467bd", dash=True)),
                                      title="Chamber pressures vs references", aspect=1.5, scales=PRESSURE_SCALES,
                                      padding=PADDING)
-        self.h_speed = gui.add_uplot(data=z, series=({"label": "t [s]"}, _series("ω [rad/s]", "#ff7f0e")),
-                                     title="Speed", aspect=2.5, scales=SPEED_SCALES, padding=PADDING)
+        self.h_speed = gui.add_uplot(data=z, series=speed, title="Speed", aspect=2.5, scales=SPEED_SCALES,
+                                     padding=PADDING)
         self.h_err = gui.add_uplot(data=z, series=({"label": "t [s]"}, _series("error [% of target]", "#8c564b")),
                                    title="Tracking error", aspect=2.5, scales=ERROR_SCALES, padding=PADDING)
         self.h_metrics = gui.add_markdown("No finished run yet.")
@@ -138,7 +148,7 @@ class LivePlots:
                                      label="Metrics radar (this run, and each other controller's latest complete run "
                                            "for the same person, scenario and target)", visible=False)
         self._build_scene()
-        self._build_cylinder(0.3)
+        self._build_cylinder(LinearCylinder.catalogue("C3").stroke)  # hidden until a linear set-up connects
         self._rig_shown = ("rotary", "")
 
     def _build_scene(self) -> None:
@@ -208,17 +218,11 @@ class LivePlots:
         """The 3-D view and the first charts' names for the rig the station drives: the forearm's handle,
         or on the linear and valve set-ups a cylinder, whose load cell measures a force along its rod."""
         rotary = kind == "rotary"
-        if not rotary:  # a real rig ignores the catalogue's name: drawn as the thesis's C3 then
-            self._build_cylinder(LinearCylinder.catalogue("C1" if cylinder == "C1" else "C2" if cylinder == "C2"
-                                                          else "C3").stroke)
+        if not rotary:  # station.Rig admits C1–C3 only, as its simulated backend takes them
+            self._build_cylinder(LinearCylinder.catalogue(cylinder).stroke)  # type: ignore[arg-type]
         self.h_rotary.visible = rotary
         self.h_cylinder.visible = not rotary
-        self.h_torque.title = "Interaction torque vs target" if rotary else "Cylinder force"
-        self.h_torque.series = (({"label": "t [s]"}, _series("T_i [N·m]", "#1f77b4"),
-                                 _series("target [N·m]", "#d62728", dash=True)) if rotary else
-                                ({"label": "t [s]"}, _series("F [N]", "#1f77b4"),
-                                 _series("(no target)", "#d62728", dash=True)))
-        self.h_speed.series = ({"label": "t [s]"}, _series("ω [rad/s]" if rotary else "v [m/s]", "#ff7f0e"))
+        self.h_torque.title, self.h_torque.series, self.h_speed.series = _rig_charts(rotary)
         self._theta = self._pos = math.nan  # re-posed at the next push
 
     def _on_gui_update(self, _client_id: int, message: GuiUpdateMessage) -> None:

@@ -155,7 +155,7 @@ def comparison(run_id: IdPath, store: StoreDep) -> Comparison:
     if r["kind"] != "workout":
         raise HTTPException(409, f"run {run_id} is not an exercise (kind {r['kind']!r}): only exercises are "
                                  "compared")
-    runs = compared_runs(store, run_id)
+    runs = compared_runs(store, r)
     if not runs:
         why = "it is still running" if r["status"] == "running" else \
             f"it ended ({r['status']}) before any of its metrics could be scored"
