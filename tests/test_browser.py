@@ -685,6 +685,51 @@ def test_a_valve_map_is_drawn_as_the_thesis_figures_draw_it(station: tuple[str, 
     page.close()
 
 
+def test_every_page_works_on_a_station_with_no_internet(station: tuple[str, str], browser: object) -> None:
+    """A station beside a rig is often offline. With every request off the station refused, the API's
+    reference (/docs, /redoc: they had loaded Swagger UI and ReDoc from a CDN and stayed blank), the
+    dashboard, the diagnosis page and the viser page all draw, and none of them asks another host."""
+    from playwright.sync_api import Browser, Route, expect
+
+    assert isinstance(browser, Browser)
+    base, viser = station
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    elsewhere: list[str] = []
+    errors: list[str] = []
+
+    def offline(route: Route) -> None:
+        url = route.request.url
+        if url.startswith(("http://127.0.0.1:", "ws://127.0.0.1:", "data:", "blob:")):
+            route.continue_()
+        else:
+            elsewhere.append(url)
+            route.abort()
+
+    def seen(e: object) -> None:
+        errors.append(str(e))
+
+    page.route("**/*", offline)
+    page.on("pageerror", seen)
+    page.goto(base + "/docs")
+    expect(page.locator(".swagger-ui .info .title")).to_contain_text("CWRR Lab Station", timeout=20_000)
+    expect(page.locator(".opblock-summary-path", has_text="/api/health").first).to_be_visible()
+    page.goto(base + "/redoc")
+    expect(page.locator("h1", has_text="CWRR Lab Station").first).to_be_visible(timeout=20_000)
+    expect(page.get_by_text("/api/health").first).to_be_attached()
+    page.goto(base)
+    expect(page.locator("#state")).not_to_have_text("…", timeout=10_000)  # the engine answered
+    page.goto(base + "/static/diagnosis.html")
+    expect(page.locator("h1")).to_contain_text("gap diagnosis", ignore_case=True)
+    page.goto(viser)
+    expect(page.locator("canvas").first).to_be_attached(timeout=60_000)
+    page.wait_for_timeout(1000)  # what a scene fetches once it draws (an environment map, a font)
+    # ReDoc's own "by Redocly" logo is the one request off the station: its image hides itself when it
+    # cannot load (redoc.standalone.js: onError), and nothing else on the page depends on it
+    assert [u for u in elsewhere if u != "https://cdn.redoc.ly/redoc/logo-mini.svg"] == [], elsewhere
+    assert not errors, errors
+    page.close()
+
+
 def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser: object,
                                                                          tmp_path: Path) -> None:
     from playwright.sync_api import Browser, expect

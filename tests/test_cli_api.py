@@ -119,6 +119,27 @@ def test_every_operation_says_what_it_does_beyond_its_summary(tmp_path: Path) ->
     assert not bare, bare
 
 
+def test_the_api_docs_pages_load_their_scripts_from_the_station_not_a_cdn(tmp_path: Path) -> None:
+    """A station beside a rig is often offline: /docs and /redoc loaded Swagger UI and ReDoc from
+    cdn.jsdelivr.net (and fonts from Google) and stayed blank there. Every file they load now comes
+    from the station itself, and each answers."""
+    import re
+
+    c = TestClient(create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False)))
+    for page, needs in (("/docs", ("swagger-ui-bundle.js", "swagger-ui.css")), ("/redoc", ("redoc.standalone.js",))):
+        r = c.get(page)
+        assert r.status_code == 200 and "text/html" in r.headers["content-type"], page
+        refs = re.findall(r"""(?:src|href|url)\s*[=:]\s*['"]([^'"]+)['"]""", r.text)
+        assert not [u for u in refs if "//" in u], (page, refs)  # no other host, no scheme-relative URL
+        for name in needs:
+            assert any(u.endswith("/" + name) for u in refs), (page, name, refs)
+        for u in refs:
+            if u.startswith("/") and u != "/openapi.json":
+                asset = c.get(u)
+                assert asset.status_code == 200 and len(asset.content) > 100, (page, u, asset.status_code)
+        assert "fonts.googleapis.com" not in r.text, page
+
+
 def test_attribute_docs_reads_a_google_style_attributes_section() -> None:
     doc = """A model.
 

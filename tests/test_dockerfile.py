@@ -176,7 +176,8 @@ def test_the_install_steps_work_in_a_fresh_venv(tmp_path: Path) -> None:
         import urllib.request
 
         for url in ("/", "/static/diagnosis.html", "/static/station.css", "/static/station.js",
-                    "/static/dashboard.js", "/static/diagnosis.js", "/static/favicon.svg"):
+                    "/static/dashboard.js", "/static/diagnosis.js", "/static/favicon.svg",
+                    "/docs", "/static-docs/swagger-ui-bundle.js"):  # the API's reference, offline too
             with urllib.request.urlopen(f"http://127.0.0.1:{port}{url}", timeout=10) as r:
                 assert r.status == 200 and r.read(), url
     finally:

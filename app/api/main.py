@@ -19,6 +19,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.api.auth import READ, BodyLimit, Role, presented_role
@@ -37,6 +38,8 @@ if TYPE_CHECKING:
     from app.api.liveplots import LivePlots
 
 STATIC = Path(__file__).resolve().parent.parent / "static"
+DOCS_ASSETS = "/static-docs"
+"""Where /docs and /redoc load Swagger UI's and ReDoc's scripts from (fastapi-offline's copies)."""
 log = logging.getLogger(__name__)
 
 
@@ -156,15 +159,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             station.close()
             store.close()
 
-    app = FastAPI(title="CWRR Lab Station", version="0.2.0", lifespan=lifespan,
-                  dependencies=[Depends(known_query_only)],
-                  description="Control station of the pneumatic wrist/forearm rehabilitation robot (CWRR).",
-                  responses={400: {"description": "The body is not readable JSON"},
-                             413: {"description": "The body is larger than CWRR_MAX_BODY_BYTES "
-                                                  "(CWRR_MAX_UPLOAD_BYTES for a run-log upload)"},
-                             503: {"description": "The run store cannot be used now (a full disk, a locked or "
-                                                  "unreachable database); the detail says which"}},
-                  )
+    # FastAPI's /docs and /redoc load Swagger UI and ReDoc from a CDN (and fonts from Google): a station
+    # beside a rig is often offline, and their pages stayed blank. FastAPIOffline serves the same
+    # scripts from the installed package (DOCS_ASSETS)
+    app = FastAPIOffline(title="CWRR Lab Station", version="0.2.0", lifespan=lifespan,
+                         dependencies=[Depends(known_query_only)], favicon_url="/static/favicon.svg",
+                         static_url=DOCS_ASSETS,
+                         description="Control station of the pneumatic wrist/forearm rehabilitation robot (CWRR).",
+                         responses={400: {"description": "The body is not readable JSON"},
+                                    413: {"description": "The body is larger than CWRR_MAX_BODY_BYTES "
+                                                         "(CWRR_MAX_UPLOAD_BYTES for a run-log upload)"},
+                                    503: {"description": "The run store cannot be used now (a full disk, a locked "
+                                                         "or unreachable database); the detail says which"}},
+                         )
     app.state.settings = settings
     too_large = (f"request body too large: the limit is {settings.max_body_bytes} bytes "
                  f"(CWRR_MAX_BODY_BYTES)")
