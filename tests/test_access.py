@@ -219,6 +219,26 @@ def test_every_api_endpoint_but_health_estop_and_auth_refuses_a_caller_without_a
             assert secured.request(method, _concrete(path), json={}, headers=wrong).status_code == 401
 
 
+def test_the_openapi_document_declares_the_tokens_so_docs_can_send_one(secured: TestClient, tmp_path: Path) -> None:
+    """/docs had no Authorize button on a station with tokens (no security scheme in the document): a
+    researcher's "Try it out" got 401 with no way to sign in, and a generated client had no token
+    parameter. The bearer scheme is declared, on exactly the operations that refuse a caller without one."""
+    spec = secured.app.openapi()  # type: ignore[attr-defined]
+    scheme = spec["components"]["securitySchemes"]["token"]
+    assert scheme["type"] == "http" and scheme["scheme"] == "bearer"
+    assert "CWRR_ADMIN_TOKEN" in scheme["description"]
+    declared = {(m.upper(), p) for p, ops in spec["paths"].items() for m, op in ops.items()
+                if {"token": []} in op.get("security", [])}
+    assert declared == set(_api_routes(secured)) - PUBLIC
+    # declared, not enforced twice: a header that is not a bearer token gets the station's own answer
+    r = secured.get("/api/engine", headers={"Authorization": "Basic eDp5"})
+    assert r.status_code == 401 and "Bearer" in r.json()["detail"]
+    # a station without tokens serves its own machine and checks none: its document asks for none
+    local = create_app(Settings(data_dir=str(tmp_path / "local"), viser_port=0, auto_connect=False)).openapi()
+    assert "securitySchemes" not in local.get("components", {})
+    assert not [p for p, ops in local["paths"].items() for op in ops.values() if "security" in op]
+
+
 def test_a_refused_motion_command_moves_nothing(secured: TestClient) -> None:
     a = _bearer(ADMIN)
     assert secured.post("/api/engine/connect", headers=a).json()["state"] == "idle"

@@ -799,6 +799,26 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
         page.wait_for_timeout(500)
         expect(page.locator("#msg")).not_to_contain_text("admin role")
         expect(page.locator("#go")).to_be_disabled()
+        # a researcher tries the API from /docs: refused without a token, answered once signed in there
+        # (the document had declared no bearer scheme, so /docs had no Authorize button)
+        docs = browser.new_page(viewport={"width": 1400, "height": 1000})
+        docs.goto(base + "/docs")
+        op = docs.locator(".opblock-get:has(.opblock-summary-path[data-path='/api/engine'])")
+        expect(op).to_be_visible(timeout=20000)
+        op.locator(".opblock-summary").click()
+        op.locator("button.try-out__btn").click()
+        op.locator("button.execute").click()
+        status = op.locator(".live-responses-table .response .response-col_status").first
+        expect(status).to_have_text("401", timeout=10000)
+        docs.locator(".scheme-container button.authorize").click()
+        docs.locator(".modal-ux input").first.fill(therapist)
+        docs.locator(".modal-ux button.authorize").click()
+        docs.locator(".modal-ux button.btn-done").click()
+        op.locator("button.execute").click()
+        expect(status).to_have_text("200", timeout=10000)
+        expect(op.locator(".live-responses-table .response .response-col_description").first).to_contain_text(
+            '"state": "idle"')
+        docs.close()
         # restarted since that run, the station keeps no last run in memory: the dashboard shows the newest
         # stored one (it had said "No run finished yet" over a history of runs), once signed in
         page.goto(base)

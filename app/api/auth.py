@@ -30,7 +30,8 @@ import json
 from enum import IntEnum
 from typing import Annotated, Any
 
-from fastapi import Depends, HTTPException, Request
+from fastapi import Depends, HTTPException, Request, Security
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.api.settings import Settings, is_loopback
@@ -76,7 +77,15 @@ def presented_role(request: Request) -> Role | None:
     return _role_of(settings, request)
 
 
-def caller_role(request: Request) -> Role:
+BEARER = HTTPBearer(auto_error=False, scheme_name="token", description=(
+    "A therapist or admin token (CWRR_THERAPIST_TOKEN / CWRR_ADMIN_TOKEN), sent as `Authorization: Bearer "
+    "<token>`. A station without tokens serves its own machine and needs none."))
+"""The tokens as the OpenAPI document declares them: /docs gets its Authorize button, a generated client
+its bearer parameter. Declaration only (``auto_error=False``): :func:`caller_role` decides, and says why."""
+
+
+def caller_role(request: Request,
+                _token: Annotated[HTTPAuthorizationCredentials | None, Security(BEARER)] = None) -> Role:
     """The role of the caller, or an HTTP 401/403 that says what is missing."""
     role = presented_role(request)
     if role is not None:

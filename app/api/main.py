@@ -270,7 +270,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            integral_bounds(base_openapi())  # FastAPI's schema models hold every bound as a float
+            spec = base_openapi()
+            integral_bounds(spec)  # FastAPI's schema models hold every bound as a float
+            if not settings.auth_enabled:
+                without_tokens(spec)
         return app.openapi_schema  # type: ignore[return-value]
 
     app.openapi = openapi  # type: ignore[method-assign]
@@ -286,6 +289,19 @@ class RevalidatedStaticFiles(StaticFiles):
         response = super().file_response(*args, **kwargs)
         response.headers["Cache-Control"] = "no-cache"
         return response
+
+
+def without_tokens(spec: dict[str, Any]) -> None:
+    """Take the bearer scheme out of an OpenAPI document, in place: this station has no tokens.
+
+    It then serves its own machine and ignores an ``Authorization`` header
+    (:mod:`app.api.auth`), so a document declaring one would promise refusals
+    that never come: a client would be told to send a token nobody checks.
+    """
+    for ops in spec.get("paths", {}).values():
+        for op in ops.values():
+            op.pop("security", None)
+    spec.get("components", {}).pop("securitySchemes", None)
 
 
 _BOUNDS = ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum", "multipleOf")
