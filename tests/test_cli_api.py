@@ -119,6 +119,17 @@ def test_every_operation_says_what_it_does_beyond_its_summary(tmp_path: Path) ->
     assert not bare, bare
 
 
+def test_each_operation_has_a_short_unique_id_a_generated_client_can_name_its_method_by(tmp_path: Path) -> None:
+    """FastAPI's default ids repeated the path and the method (``list_runs_api_runs_get``); a client
+    generated from the document named its methods so."""
+    spec = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False)).openapi()
+    ids = {(m.upper(), p): op["operationId"] for p, ops in spec["paths"].items() for m, op in ops.items()}
+    assert len(set(ids.values())) == len(ids) > 30
+    assert ids[("GET", "/api/runs")] == "runs-list_runs" and ids[("GET", "/api/engine")] == "engine-status"
+    assert ids[("POST", "/api/engine/start")] == "engine-start" and ids[("POST", "/api/diagnoses")] == "diagnoses-start"
+    assert not [i for i in ids.values() if "_api_" in i or i.endswith(("_get", "_post", "_patch"))], ids
+
+
 def test_the_api_docs_pages_load_their_scripts_from_the_station_not_a_cdn(tmp_path: Path) -> None:
     """A station beside a rig is often offline: /docs and /redoc loaded Swagger UI and ReDoc from
     cdn.jsdelivr.net (and fonts from Google) and stayed blank there. Every file they load now comes

@@ -18,6 +18,7 @@ from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse, Response
+from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -164,6 +165,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # scripts from the installed package (DOCS_ASSETS)
     app = FastAPIOffline(title="CWRR Lab Station", version="0.2.0", lifespan=lifespan,
                          dependencies=[Depends(known_query_only)], favicon_url="/static/favicon.svg",
+                         generate_unique_id_function=operation_id,
                          static_url=DOCS_ASSETS,
                          description="Control station of the pneumatic wrist/forearm rehabilitation robot (CWRR).",
                          responses={400: {"description": "The body is not readable JSON"},
@@ -289,6 +291,15 @@ class RevalidatedStaticFiles(StaticFiles):
         response = super().file_response(*args, **kwargs)
         response.headers["Cache-Control"] = "no-cache"
         return response
+
+
+def operation_id(route: APIRoute) -> str:
+    """An operation's id in the OpenAPI document: its tag and handler, ``runs-list_runs``.
+
+    What a generated client names its methods by (FastAPI's own default,
+    ``list_runs_api_runs_get``, repeats the path and the method).
+    """
+    return f"{route.tags[0]}-{route.name}" if route.tags else route.name
 
 
 def without_tokens(spec: dict[str, Any]) -> None:

@@ -106,7 +106,8 @@ def start(req: RunRequest, station: StationDep, store: StoreDep) -> Started:
 
 
 @router.post("/engine/estimate/rotary", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
-             summary="idle → identifying: rotary friction identification (thesis 3.2.4, 500 Hz)")
+             summary="idle → identifying: rotary friction identification (thesis 3.2.4, 500 Hz)",
+             name="estimate_rotary")  # its own operation id beside /engine/estimate's, the same call
 @router.post("/engine/estimate", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,
              summary="idle → identifying: rotary friction identification (thesis 3.2.4, 500 Hz)")
 def estimate(req: RotaryIdentRequest, station: StationDep) -> Started:
