@@ -128,6 +128,22 @@ def test_each_operation_has_a_short_unique_id_a_generated_client_can_name_its_me
     assert ids[("GET", "/api/runs")] == "runs-list_runs" and ids[("GET", "/api/engine")] == "engine-status"
     assert ids[("POST", "/api/engine/start")] == "engine-start" and ids[("POST", "/api/diagnoses")] == "diagnoses-start"
     assert not [i for i in ids.values() if "_api_" in i or i.endswith(("_get", "_post", "_patch"))], ids
+    # and /docs says what each group of calls is for
+    used = {t for ops in spec["paths"].values() for op in ops.values() for t in op["tags"]}
+    described = {t["name"] for t in spec["tags"] if len(t.get("description", "")) > 30}
+    assert used <= described, used - described
+
+
+def test_the_document_lists_what_each_call_can_answer_and_no_more(tmp_path: Path) -> None:
+    """The export had listed a JSON answer it never gives, and every GET the 400 and 413 of a body it
+    cannot have."""
+    spec = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False)).openapi()
+    export = spec["paths"]["/api/runs/{run_id}/export"]["get"]["responses"]["200"]["content"]
+    assert set(export) == {"text/csv", "application/vnd.apache.parquet", "application/x-matlab-data"}
+    ops = [op for ops in spec["paths"].values() for op in ops.values()]
+    assert not [op["operationId"] for op in ops if "requestBody" not in op and {"400", "413"} & set(op["responses"])]
+    with_body = [op for op in ops if "requestBody" in op]
+    assert len(with_body) > 10 and all({"400", "413"} <= set(op["responses"]) for op in with_body)
 
 
 def test_the_api_docs_pages_load_their_scripts_from_the_station_not_a_cdn(tmp_path: Path) -> None:

@@ -39,6 +39,26 @@ if TYPE_CHECKING:
     from app.api.liveplots import LivePlots
 
 STATIC = Path(__file__).resolve().parent.parent / "static"
+BODY_ERRORS: dict[int | str, dict[str, Any]] = {
+    400: {"description": "The body is not readable JSON"},
+    413: {"description": "The body is larger than CWRR_MAX_BODY_BYTES (CWRR_MAX_UPLOAD_BYTES for a run-log upload)"}}
+"""What any call with a body may answer; the OpenAPI document lists them on those calls only."""
+TAGS: list[dict[str, Any]] = [
+    {"name": "engine", "description": "The station's state machine (disconnected → idle → running or identifying "
+                                      "→ idle, a latched fault), exercises, identification, tuning, the emergency "
+                                      "stop, live samples and the health of the control loop."},
+    {"name": "runs", "description": "Stored runs (exercises, identifications, protocols, diagnoses): their "
+                                    "metrics, results and logs, exports as CSV, Parquet or MATLAB .mat, logs "
+                                    "recorded elsewhere, and an exercise beside the other controllers."},
+    {"name": "parameters", "description": "Parameter sets checked by the thesis GUIs' rules: friction, "
+                                          "controller gains, fuzzy universes, scenario settings."},
+    {"name": "sessions", "description": "Therapy sessions: a person's pseudonymous id, notes, and the runs "
+                                        "made under them."},
+    {"name": "diagnoses", "description": "The sim-to-real gap diagnosis: the protocol, ranges for the "
+                                         "recalibration, running one on stored runs, its traces."},
+    {"name": "auth", "description": "Whether this station needs a token, and what the one sent may do."},
+]
+"""The groups of /docs, each with what it holds."""
 DOCS_ASSETS = "/static-docs"
 """Where /docs and /redoc load Swagger UI's and ReDoc's scripts from (fastapi-offline's copies)."""
 log = logging.getLogger(__name__)
@@ -165,12 +185,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # scripts from the installed package (DOCS_ASSETS)
     app = FastAPIOffline(title="CWRR Lab Station", version="0.2.0", lifespan=lifespan,
                          dependencies=[Depends(known_query_only)], favicon_url="/static/favicon.svg",
-                         generate_unique_id_function=operation_id,
+                         generate_unique_id_function=operation_id, openapi_tags=TAGS,
                          static_url=DOCS_ASSETS,
                          description="Control station of the pneumatic wrist/forearm rehabilitation robot (CWRR).",
-                         responses={400: {"description": "The body is not readable JSON"},
-                                    413: {"description": "The body is larger than CWRR_MAX_BODY_BYTES "
-                                                         "(CWRR_MAX_UPLOAD_BYTES for a run-log upload)"},
+                         responses={**BODY_ERRORS,
                                     503: {"description": "The run store cannot be used now (a full disk, a locked "
                                                          "or unreachable database); the detail says which"}},
                          )
@@ -274,6 +292,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if app.openapi_schema is None:
             spec = base_openapi()
             integral_bounds(spec)  # FastAPI's schema models hold every bound as a float
+            for ops in spec["paths"].values():
+                for op in ops.values():
+                    if "requestBody" not in op:  # a call without a body cannot send unreadable or large ones
+                        for code in BODY_ERRORS:
+                            op["responses"].pop(str(code), None)
             if not settings.auth_enabled:
                 without_tokens(spec)
         return app.openapi_schema  # type: ignore[return-value]

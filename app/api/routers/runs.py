@@ -258,7 +258,8 @@ def _for_matlab(v: Any) -> Any:
 
 
 FILES: dict[int | str, dict[str, Any]] = {
-    **NOT_FOUND, 200: {"content": {"text/csv": {}, "application/x-matlab-data": {},
+    **NOT_FOUND, 200: {"description": "The log as a file, in the format asked for",
+                       "content": {"text/csv": {}, "application/x-matlab-data": {},
                                    "application/vnd.apache.parquet": {}}}}
 
 
@@ -279,7 +280,7 @@ def _parquet(r: dict[str, Any]) -> bytes:
     return bytes(buf.getvalue().to_pybytes())
 
 
-@router.get("/{run_id}/export", responses=FILES,
+@router.get("/{run_id}/export", responses=FILES, response_class=Response,
             summary="Download the time series as CSV, Parquet or MATLAB .mat")
 def export(run_id: IdPath, store: StoreDep, fmt: Annotated[Literal["csv", "parquet", "mat"], Query(
         description="csv (the log format), parquet (spec, metrics, result and the log's JSON header in its "
