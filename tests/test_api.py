@@ -493,7 +493,7 @@ def test_every_parameter_kind_is_validated_stored_and_referenced_by_runs(client:
 
 def test_the_linear_rig_runs_the_linear_identification_and_refuses_workouts(client: TestClient) -> None:
     st = client.post("/api/engine/connect", json={"rig": "linear", "cylinder": "C1"}).json()
-    assert st["rig"] == {"kind": "linear", "cylinder": "C1"}
+    assert st["rig"] == {"kind": "linear", "cylinder": "C1", "stroke_mm": 225.0}  # the catalogue's C1
     r = client.post("/api/engine/start", json={})
     assert r.status_code == 409 and "rotary rig" in r.json()["detail"]
     assert client.post("/api/engine/estimate", json={}).status_code == 409  # rotary procedure, linear rig
@@ -840,7 +840,7 @@ def test_the_cpr_rig_maps_the_valve_and_fits_the_flow_model(client: TestClient) 
     assert client.post("/api/engine/estimate/dcv", json={}).status_code == 409  # rotary rig connected
     client.post("/api/engine/disconnect")
     st = client.post("/api/engine/connect", json={"rig": "cpr"}).json()
-    assert st["rig"] == {"kind": "cpr", "cylinder": "C3"}
+    assert st["rig"] == {"kind": "cpr", "cylinder": "C3", "stroke_mm": 300.0}
     assert client.post("/api/engine/start", json={}).status_code == 409
     assert client.post("/api/engine/tune/pid", json={}).status_code == 409
     r = client.post("/api/engine/estimate/dcv", json={"ps_bar": [3.0, 6.0]})

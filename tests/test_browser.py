@@ -685,6 +685,46 @@ def test_a_valve_map_is_drawn_as_the_thesis_figures_draw_it(station: tuple[str, 
     page.close()
 
 
+def test_on_the_linear_rig_the_live_bar_shows_the_piston_along_the_cylinders_stroke(
+        station: tuple[str, str], browser: object) -> None:
+    """The bar above the live charts showed the handle's angle on the forearm robot and nothing on the
+    linear set-ups; it now shows the piston's travel along the catalogue's stroke (the station's status
+    says it), and the rig list shows the rig connected, also when a script connected it."""
+    from playwright.sync_api import Browser, expect
+
+    assert isinstance(browser, Browser)
+    base, _viser = station
+    _connected_and_idle(base)
+    _call(base, "POST", "/api/engine/disconnect")
+    st = _call(base, "POST", "/api/engine/connect", {"rig": "linear", "cylinder": "C1"})
+    assert st["rig"] == {"kind": "linear", "cylinder": "C1", "stroke_mm": 225.0}
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    try:
+        page.goto(base)
+        expect(page.locator("#rig")).to_have_value("linear:C1", timeout=10_000)
+        expect(page.locator("#gauge-caption")).to_have_text("left: retracted · right: extended (225 mm, the C1 stroke)")
+        # the simulated piston rests retracted: the live samples put the mark at the left end
+        expect(page.locator("#handle-angle")).to_have_text("Piston: 0 of 225 mm extended", timeout=10_000)
+        mark = page.locator("#handle-mark")
+        assert float(mark.get_attribute("x").rstrip("%")) < 1.0  # type: ignore[union-attr]
+        # 100 mm of the 225, read at once (the next live poll puts the mark back where the piston is)
+        said, x = page.evaluate("""() => { moveGauge(0.1);
+            return [document.getElementById('handle-angle').textContent,
+                    parseFloat(document.getElementById('handle-mark').getAttribute('x'))]; }""")
+        assert said == "Piston: 100 of 225 mm extended" and x == pytest.approx(100 * 100 / 225, abs=0.01)
+        # back on the forearm robot, the angle again
+        _call(base, "POST", "/api/engine/disconnect")
+        _call(base, "POST", "/api/engine/connect", {"rig": "rotary"})
+        expect(page.locator("#rig")).to_have_value("rotary", timeout=10_000)
+        expect(page.locator("#gauge-caption")).to_contain_text("supination", timeout=10_000)
+        expect(page.locator("#handle-angle")).to_contain_text("Handle: ", timeout=10_000)
+    finally:
+        page.close()
+        _connected_and_idle(base)
+        if _call(base, "GET", "/api/engine")["rig"]["kind"] != "rotary":
+            _call(base, "POST", "/api/engine/disconnect")
+
+
 def test_every_page_works_on_a_station_with_no_internet(station: tuple[str, str], browser: object) -> None:
     """A station beside a rig is often offline. With every request off the station refused, the API's
     reference (/docs, /redoc: they had loaded Swagger UI and ReDoc from a CDN and stayed blank), the

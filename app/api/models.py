@@ -141,6 +141,22 @@ class Health(Documented):
     heap_refreeze_ms: float = 0.0
 
 
+class RigInfo(Documented):
+    """The connected rig.
+
+    Attributes:
+        kind: ``rotary`` (the forearm robot), ``linear`` (the linear test cylinder) or ``cpr`` (the
+            valve test set-up with the cylinder held extended).
+        cylinder: The linear rig's cylinder, ``C1``, ``C2`` or ``C3`` (thesis Tables 4.5–4.6).
+        stroke_mm: That cylinder's stroke in the catalogue [mm] (null on the forearm robot): the
+            piston runs from 0 (retracted) to it.
+    """
+
+    kind: str
+    cylinder: str
+    stroke_mm: float | None = None
+
+
 class EngineStatus(Documented):
     """The station's state machine as the dashboard sees it.
 
@@ -149,7 +165,7 @@ class EngineStatus(Documented):
         allowed: Actions legal now (the dashboard enables exactly these buttons).
         run_id: Stored id of the current or last started run.
         backend: Backend name when connected.
-        rig: The connected rig (kind, cylinder).
+        rig: The connected rig (kind, cylinder, stroke).
         fault: The latched fault's message.
         progress: Progress of the current work.
         last_run: How the last run ended (id, status, metrics or result, the ``warnings`` its result
@@ -169,7 +185,7 @@ class EngineStatus(Documented):
     allowed: list[str]
     run_id: int | None = None
     backend: str | None = None
-    rig: dict[str, str] | None = None
+    rig: RigInfo | None = None
     fault: str = ""
     progress: dict[str, Any] | None = None
     last_run: dict[str, Any] | None = None

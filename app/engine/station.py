@@ -44,7 +44,7 @@ from app.engine.hardware.config import HardwareConfig, save_config
 from app.engine.hardware.factory import make_factory
 from app.engine.loop import REFREEZE_S, Controller, Engine, Recorder, WallClock, refreeze_heap, settle_heap
 from app.engine.metrics import toggle_report
-from app.engine.params import ParameterError, PlantParams, SensorParams, check_range
+from app.engine.params import LinearCylinder, ParameterError, PlantParams, SensorParams, check_range
 from app.engine.runlog import RunLogWriter, new_log_name
 from app.engine.safety import RELEASE_S, SafetyLimits, SafetySupervisor, release_command
 from app.engine.scenarios import SCENARIOS, Case, ScenarioSettings, case_controller, case_program, score_case
@@ -953,7 +953,7 @@ class Station:
                                "backend": self.backend.name if self.backend else None,
                                "calibration": (cfg.calibration.model_dump() if isinstance(cfg, HardwareConfig)
                                                else None),
-                               "rig": asdict(self.rig) if self.backend else None,
+                               "rig": self._rig_status() if self.backend else None,
                                "fault": self.fault_message, "progress": None, "last_run": self.last_run,
                                "safety": self.safety.status(), "p_atm_bar": self.p_atm_bar}
         if self._job is not None:
@@ -963,6 +963,13 @@ class Station:
         elif self._proc is not None:
             out["progress"] = {"kind": self._proc_kind, **self._proc.progress.as_dict()}
         return out
+
+    def _rig_status(self) -> dict[str, Any]:
+        """The connected rig, with the cylinder's catalogue stroke [mm] on the linear set-ups."""
+        rig = self.rig
+        stroke = (None if rig.kind == "rotary"
+                  else round(LinearCylinder.catalogue(rig.cylinder).stroke * 1e3, 6))  # type: ignore[arg-type]
+        return asdict(rig) | {"stroke_mm": stroke}
 
     def health(self) -> dict[str, Any]:
         """Loop health for ``/api/health``."""

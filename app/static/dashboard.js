@@ -47,6 +47,10 @@ function render(st) {
   const rigName = st.rig ? RIG_NAMES[st.rig.kind] + (st.rig.kind === 'rotary' ? '' : ` ${st.rig.cylinder}`) : '';
   $('backend').textContent = st.backend ? `(${st.backend === 'sim' ? 'simulated' : st.backend} ${rigName})` : '';
   $('rig').disabled = st.state !== 'disconnected';
+  if (st.rig && st.state !== 'disconnected') {  // the rig connected, also when a script or another tab chose it
+    const v = st.rig.kind === 'rotary' ? 'rotary' : `${st.rig.kind}:${st.rig.cylinder}`;
+    if ([...$('rig').options].some(o => o.value === v)) $('rig').value = v;
+  }
   const rigKind = st.rig ? st.rig.kind : $('rig').value.split(':')[0];
   const formRig = rigKind === 'cpr' ? identRig : rigKind;  // the friction form stays as it was on the valve set-up
   if (formRig !== identRig) { identRig = formRig; $('ident-fields').innerHTML = ''; checkForm(); }
@@ -87,7 +91,8 @@ function render(st) {
     });
   }
   const sf = st.safety || {};
-  setGauge(st.state !== 'disconnected' && st.rig && st.rig.kind === 'rotary' ? sf.limits : null);
+  const onRig = st.state !== 'disconnected' && st.rig ? st.rig : null;
+  setGauge(onRig ? sf.limits : null, onRig);
   $('engine-msg').textContent = st.fault ? 'Fault: ' + st.fault + (sf.fault ? ` [${sf.fault.code}] — the rig is vented; clear the fault to reconnect` : '')
     : (sf.no_action ? 'Soft range-of-motion limit: holding equal pressures' : '');
   const p = st.progress;
@@ -709,30 +714,48 @@ function draw(canvas, series, lo, hi, rows = live, shade = null) {
   ctx.setLineDash([]);
 }
 // the handle's angle on a bar spanning the range of motion, end stops at its ends and the no-action zone
-// inside each drawn as the station's safety applies them; built when the limits change, moved per poll
-let gaugeKey = null, gaugeHalf = 0;
-function setGauge(lim) {
-  const rom = lim && typeof lim.rom_deg === 'number' ? lim.rom_deg : null;
-  const key = rom === null ? null : `${rom}/${lim.soft_margin_deg}`;
+// inside each drawn as the station's safety applies them; on the linear set-ups the piston's travel along
+// the cylinder's stroke (retracted at the left). Built when the limits or the rig change, moved per poll
+let gaugeKey = null, gaugeHalf = 0, gaugeStroke = null;
+function setGauge(lim, rig) {
+  const stroke = rig && rig.kind !== 'rotary' && typeof rig.stroke_mm === 'number' ? rig.stroke_mm : null;
+  const rom = stroke === null && lim && typeof lim.rom_deg === 'number' ? lim.rom_deg : null;
+  const key = stroke !== null ? `stroke/${stroke}` : rom === null ? null : `${rom}/${lim.soft_margin_deg}`;
   if (key === gaugeKey) return;
-  gaugeKey = key; $('handle-gauge').hidden = rom === null;
-  if (rom === null) return;
-  gaugeHalf = rom / 2;
-  const soft = 100 * lim.soft_margin_deg / rom;
+  gaugeKey = key; gaugeStroke = stroke; $('handle-gauge').hidden = key === null;
+  if (key === null) return;
+  gaugeHalf = rom === null ? 0 : rom / 2;
+  const soft = rom === null ? 0 : 100 * lim.soft_margin_deg / rom;
+  $('handle-svg').setAttribute('aria-label', stroke === null ? "The handle's angle between the end stops"
+    : "The piston's travel along the cylinder's stroke");
+  $('gauge-caption').textContent = stroke === null
+    ? 'left: supination · right: pronation · orange: no-action zone before each end stop'
+    : `left: retracted · right: extended (${stroke} mm, the ${rig.cylinder} stroke)`;
   $('handle-svg').innerHTML =
     `<rect x="0" y="9" width="100%" height="8" fill="#e6ebf1"/>` +
-    `<rect x="0" y="9" width="${soft}%" height="8" fill="#f0a040"/><rect x="${100 - soft}%" y="9" width="${soft}%" height="8" fill="#f0a040"/>` +
+    (soft > 0 ? `<rect x="0" y="9" width="${soft}%" height="8" fill="#f0a040"/><rect x="${100 - soft}%" y="9" width="${soft}%" height="8" fill="#f0a040"/>` : '') +
     `<rect x="0" y="3" width="3" height="20" fill="#d62728"/><rect x="100%" y="3" width="3" height="20" fill="#d62728" transform="translate(-3,0)"/>` +
-    `<rect x="50%" y="6" width="1" height="14" fill="#888"/>` +
-    `<rect id="handle-mark" x="50%" y="1" width="6" height="24" rx="2" fill="#1f77b4" transform="translate(-3,0)" visibility="hidden"/>`;
+    (stroke === null ? `<rect x="50%" y="6" width="1" height="14" fill="#888"/>` : '') +
+    `<rect id="handle-mark" x="${stroke === null ? 50 : 0}%" y="1" width="6" height="24" rx="2" fill="#1f77b4" transform="translate(-3,0)" visibility="hidden"/>`;
   $('handle-angle').textContent = '';
 }
-function moveGauge(thetaRad) {
-  if (gaugeKey === null || !Number.isFinite(thetaRad)) return;
-  const deg = thetaRad * 180 / Math.PI, pct = Math.min(100, Math.max(0, 50 + 50 * deg / gaugeHalf));
-  const m = $('handle-mark'); m.setAttribute('x', `${pct.toFixed(2)}%`); m.setAttribute('visibility', 'visible');
-  m.dataset.deg = deg.toFixed(2);
-  $('handle-angle').textContent = `Handle: ${angleWords(deg)}`;
+// pos: the measured angle [rad] on the forearm robot, the piston's travel [m] on the linear set-ups
+function moveGauge(pos) {
+  if (gaugeKey === null || !Number.isFinite(pos)) return;
+  const m = $('handle-mark');
+  let pct;
+  if (gaugeStroke !== null) {
+    const mm = pos * 1000;
+    pct = Math.min(100, Math.max(0, 100 * mm / gaugeStroke));
+    m.dataset.mm = mm.toFixed(1); delete m.dataset.deg;
+    $('handle-angle').textContent = `Piston: ${Math.round(mm)} of ${gaugeStroke} mm extended`;
+  } else {
+    const deg = pos * 180 / Math.PI;
+    pct = Math.min(100, Math.max(0, 50 + 50 * deg / gaugeHalf));
+    m.dataset.deg = deg.toFixed(2); delete m.dataset.mm;
+    $('handle-angle').textContent = `Handle: ${angleWords(deg)}`;
+  }
+  m.setAttribute('x', `${pct.toFixed(2)}%`); m.setAttribute('visibility', 'visible');
 }
 async function pollLive() {
   try {
