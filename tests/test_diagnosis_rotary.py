@@ -414,6 +414,35 @@ def test_the_regulators_phase_counts_as_lost_from_half_a_second_after_a_chambers
     assert lost[400 + before + 1:].all()
 
 
+def test_a_command_step_is_read_alike_at_every_sample_rate() -> None:
+    """A chirp on the DCVs (another lab's valve_chirp, bench/independent_rig.py) moves ≥ 0.016 V per
+    5 ms but 0.003 V per 1 ms where it turns slowly: sampled at 200 Hz it read as stepping throughout
+    (the regulator's phase kept), at 1 kHz a quarter of it as held (the phase lost), and that log's
+    recalibration took another form. A step is now a change over 5 ms: the same at both rates, and at
+    200 Hz the change between neighbouring samples, as before."""
+    def chirp(rate: float) -> np.ndarray:
+        t = np.arange(int(15.0 * rate)) / rate
+        u = 5.0 - 2.5 * np.sin(2.0 * np.pi * (0.2 + 0.06 * t) * t)
+        return np.column_stack([np.full_like(t, 2.0), u])
+
+    slow, fast = chirp(200.0), chirp(1000.0)
+    np.testing.assert_array_equal(rotary.command_changes(slow, 0.005)[1:], np.abs(np.diff(slow, axis=0)))
+    lost_slow, lost_fast = _phase_lost(slow, 0.005), _phase_lost(fast, 0.001)
+    assert not lost_slow.any() and not lost_fast.any()
+    # a step of a 1 kHz log is still one step, seen over the next 5 ms only
+    held = np.full((3000, 2), 5.0)
+    held[1000:, 0] = 6.0
+    ch = rotary.command_changes(held, 0.001)
+    assert (np.flatnonzero(ch[:, 0] > rotary.STEP_V) == np.arange(1000, 1005)).all()
+    # and what a log excites does not hang on its rate: a PRV ramp of 0.4 V/s…
+    for rate in (200.0, 1000.0):
+        t = np.arange(int(10.0 * rate)) / rate
+        z = np.column_stack([1.0 + 0.4 * t, np.full_like(t, 2.0)])
+        assert not (rotary.command_changes(z, 1.0 / rate) > rotary.PRV_STEP_V).any(), rate
+        z[int(5.0 * rate):, 0] += 0.5  # …with one step in it
+        assert (rotary.command_changes(z, 1.0 / rate) > rotary.PRV_STEP_V).any(), rate
+
+
 def test_where_the_phase_is_lost_the_cycles_mean_predicts_the_rig_better() -> None:
     """A PRV that acts cycles in a sawtooth whose phase the replay loses a few cycles after a step:
     two sawtooths out of phase differ by about their size, a mean by less. On a noise-free rig

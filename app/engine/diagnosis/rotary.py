@@ -105,6 +105,11 @@ _PNEUMATIC_EFFECTS = ("vane_leakage", "external_leakage", "heat_transfer", "tube
 PHASE_KEPT_S = 0.5
 CYCLE_MEAN_S = 0.1
 STEP_V = 0.01  # a command change this large [V] is a step (the protocol's holds change by none)
+STEP_SPAN_S = 0.005
+"""The span a command change is measured over [s] (:func:`command_changes`): one sample of the
+protocol's 200 Hz logs, where the step rules here were set. Between two samples of a 1 kHz log a
+chirp or ramp moves a fifth as far, so the same experiment had read as stepped at 200 Hz and as
+held at 1 kHz (docs/diagnosis-record.md, "A command step is a change over 5 ms")."""
 # the report's regimes ("where"), shared with what a log is read to excite (run.excites)
 PRV_STEP_V = 0.1  # a PRV command change this large [V] starts a pressure transient
 DCV_STEP_V = 0.2  # and a DCV command change this large [V]
@@ -168,6 +173,24 @@ def _noise_carried(b: np.ndarray, a: np.ndarray, moving: np.ndarray) -> np.ndarr
     return np.clip(fftconvolve(moving.astype(float), h2 / h2.sum(), mode="same"), 0.0, 1.0)
 
 
+def command_changes(cmds: np.ndarray, dt: float) -> np.ndarray:
+    """How far each command moved over the last :data:`STEP_SPAN_S` (at least one sample) [V].
+
+    Args:
+        cmds: (n, k) commands [V].
+        dt: Sample interval [s].
+
+    Returns:
+        (n, k): row i is ``|cmds[i] − cmds[i − lag]|`` (the first rows from the log's first sample;
+        row 0 is zero). At 200 Hz and slower, lag is one sample: the change between neighbours.
+    """
+    lag = max(1, int(round(STEP_SPAN_S / dt)))
+    out = np.zeros(cmds.shape)
+    i = np.arange(1, len(cmds))
+    out[1:] = np.abs(cmds[1:] - cmds[np.maximum(i - lag, 0)])
+    return out
+
+
 def _phase_lost(cmds: np.ndarray, dt: float, kept_s: float = PHASE_KEPT_S,
                 mean_s: float = CYCLE_MEAN_S) -> np.ndarray:
     """Samples whose averaging window starts ``kept_s`` or more after a command step (or the log's start).
@@ -179,7 +202,7 @@ def _phase_lost(cmds: np.ndarray, dt: float, kept_s: float = PHASE_KEPT_S,
         mean_s: The averaging window [s].
     """
     step = np.zeros(len(cmds), dtype=np.int64)
-    step[1:] = (np.abs(np.diff(cmds, axis=0)) > STEP_V).any(axis=1)
+    step[1:] = (command_changes(cmds, dt)[1:] > STEP_V).any(axis=1)
     step[0] = 1  # the replay starts from what the sensors read: in phase
     before = int(round(kept_s / dt))
     after = int(round(0.5 * mean_s / dt)) + 1  # the mean must not reach across the next step
@@ -358,7 +381,7 @@ def settled(e: Experiment, hold_s: float, tol_v: float = 0.05) -> np.ndarray:
     """Per sample, whether none of the four commands has moved by more than ``tol_v`` [V] for ``hold_s`` [s]."""
     u = e.inputs
     cmds = np.column_stack([u["z_a"], u["z_b"], u["u_a"], u["u_b"]])
-    changed = np.r_[True, (np.abs(np.diff(cmds, axis=0)) > tol_v).any(axis=1)]
+    changed = np.r_[True, (command_changes(cmds, e.dt)[1:] > tol_v).any(axis=1)]
     return np.asarray(samples_since(changed) * e.dt >= hold_s)
 
 
@@ -636,9 +659,9 @@ class RotaryFamily:
         for i in idx:
             change[max(0, i - win): i + win + 1] = True
         steps = np.zeros(sp.shape, dtype=bool)
-        dcmd = np.abs(np.diff(cmds, axis=0))
+        dcmd = command_changes(cmds, dt)
         for i in np.flatnonzero((dcmd[:, :2] > PRV_STEP_V).any(axis=1) | (dcmd[:, 2:] > DCV_STEP_V).any(axis=1)):
-            steps[i + 1: i + 1 + int(round(0.3 / dt))] = True
+            steps[i: i + int(round(0.3 / dt))] = True
         pmax = np.maximum(ch["p_a"], ch["p_b"])
         regimes = {
             "standstill": still & ~change, "motion onset/reversal": change,

@@ -485,9 +485,9 @@ def excites(e: Experiment) -> frozenset[str]:
             out.add("shut after a fast fill or vent")
             break
     z = np.column_stack([e.inputs["z_a"], e.inputs["z_b"]])
-    if (np.abs(np.diff(z, axis=0)) > rotary.PRV_STEP_V).any():
+    if (rotary.command_changes(z, e.dt) > rotary.PRV_STEP_V).any():
         out.add("prv steps")
-    if (np.abs(np.diff(np.column_stack([ua, ub]), axis=0)) > rotary.DCV_STEP_V).any():
+    if (rotary.command_changes(np.column_stack([ua, ub]), e.dt) > rotary.DCV_STEP_V).any():
         out.add("dcv steps")
     # the flow at a partial opening is the valve model's shape, not only its capacity
     off = np.abs(np.column_stack([ua, ub]) - 5.0)
