@@ -222,7 +222,9 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     # viser applies what it receives in its 3-D view's frame loop (MessageHandler.tsx: useFrame), so a
     # page whose frames stall draws nothing new: on a fresh clone's CI, 2 of about 60 runs had left a
     # chart unchanged for 5 s, which 30 runs here, 12 of them beside a busy core, never did. A chart
-    # that does not move then is named, with whether the page was visible and drew frames
+    # that does not move then is named, with whether the page was visible and drew frames. That is not
+    # the whole story: one more CI failure (forty-fifth session) had all four unchanged for 10 s with the
+    # page visible, 59 frames a second and the run going on, so no update reached the charts (open)
     try:
         viser.wait_for_function("b => [...document.querySelectorAll('.uplot canvas')].every((c, i) => "
                                 "c.toDataURL() !== b[i])", arg=before, timeout=10000)
