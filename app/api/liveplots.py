@@ -19,7 +19,7 @@ from app.api.compare import latest_per_controller
 from app.engine.metrics import METRIC_LABELS, METRICS
 from app.engine.params import LinearCylinder
 from app.engine.safety import SafetyLimits
-from app.engine.station import LIVE_COLUMNS, Station
+from app.engine.station import LIVE_COLUMNS, Rig, Station
 
 PUBLISH_HZ = 25.0  # issue 5: 20–30 Hz
 WINDOW_S = 10.0
@@ -214,12 +214,13 @@ class LivePlots:
         self.h_extension = scene.add_label("/cylinder/extension", "extension: –", position=(0.0, 0.0, 0.06))
         self._pos = math.nan
 
-    def _show_rig(self, kind: str, cylinder: str) -> None:
+    def _show_rig(self, rig: Rig) -> None:
         """The 3-D view and the first charts' names for the rig the station drives: the forearm's handle,
         or on the linear and valve set-ups a cylinder, whose load cell measures a force along its rod."""
-        rotary = kind == "rotary"
-        if not rotary:  # station.Rig admits C1–C3 only, as its simulated backend takes them
-            self._build_cylinder(LinearCylinder.catalogue(cylinder).stroke)  # type: ignore[arg-type]
+        stroke = rig.stroke  # none on the forearm robot
+        rotary = stroke is None
+        if stroke is not None:
+            self._build_cylinder(stroke)
         self.h_rotary.visible = rotary
         self.h_cylinder.visible = not rotary
         self.h_torque.title, self.h_torque.series, self.h_speed.series = _rig_charts(rotary)
@@ -266,7 +267,7 @@ class LivePlots:
         rig = self.station.rig
         if (rig.kind, rig.cylinder) != self._rig_shown:
             self._rig_shown = (rig.kind, rig.cylinder)
-            self._show_rig(rig.kind, rig.cylinder)
+            self._show_rig(rig)
         last = self.station.last_run
         if last is not None and last is not self._last_run:
             self._last_run = last

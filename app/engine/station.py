@@ -146,6 +146,14 @@ class Rig:
             raise ParameterError(f"cylinder: {self.cylinder!r} must be C1, C2 or C3 "
                                  "(the cylinders of thesis Tables 4.5–4.6)")
 
+    @property
+    def stroke(self) -> float | None:
+        """The cylinder's stroke in the catalogue [m] on the linear set-ups (None on the forearm robot):
+        the piston runs from 0 (retracted) to it."""
+        if self.kind == "rotary":
+            return None
+        return LinearCylinder.catalogue(self.cylinder).stroke  # type: ignore[arg-type]  # checked above
+
 
 RunKind = Literal["workout", "rotary_friction", "linear_friction", "dcv_flow", "pid_tuning", "diagnosis_protocol",
                   "protocol", "diagnosis", "imported"]
@@ -966,10 +974,8 @@ class Station:
 
     def _rig_status(self) -> dict[str, Any]:
         """The connected rig, with the cylinder's catalogue stroke [mm] on the linear set-ups."""
-        rig = self.rig
-        stroke = (None if rig.kind == "rotary"
-                  else round(LinearCylinder.catalogue(rig.cylinder).stroke * 1e3, 6))  # type: ignore[arg-type]
-        return asdict(rig) | {"stroke_mm": stroke}
+        stroke = self.rig.stroke
+        return asdict(self.rig) | {"stroke_mm": None if stroke is None else round(stroke * 1e3, 6)}
 
     def health(self) -> dict[str, Any]:
         """Loop health for ``/api/health``."""
