@@ -302,7 +302,9 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
         health holds the jitter [ms] and the overruns counted during that phase,
         ``machine_floor``: the same figures of a bare pacing process run beside
         the engine over the same seconds (what the machine allows any program),
-        and ``steal_pct``: the share of CPU time the hypervisor took [%].
+        ``steal_pct``: the share of CPU time the hypervisor took [%], and
+        ``live_plots``: the viser pages connected, the chart updates pushed to them
+        per second and the pushes that failed.
     """
     import contextlib
     import json
@@ -386,6 +388,7 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
             if pacer.stdout.readline().strip() != "ready":
                 raise RuntimeError("the pacing probe did not start")
             before = engine.overruns
+            plots0 = call("GET", "/api/health")["live_plots"] or {}
             engine.reset_window()
             pauses.clear()
             steal0, t0 = _steal_jiffies(), time.monotonic()
@@ -410,11 +413,16 @@ def load(clients: int = 10, seconds: float = 8.0, chromium: str = "/usr/bin/chro
                     raise
         st = call("GET", "/api/engine")
         fault = (st.get("safety") or {}).get("fault")
+        plots = h["live_plots"] or {}
+        # the viser charts' publisher over the phase: whether the pages watching were fed
+        live = {"viewers": plots.get("viewers", 0),
+                "pushes_per_s": (plots.get("pushes", 0) - plots0.get("pushes", 0)) / seconds,
+                "errors": plots.get("errors", 0) - plots0.get("errors", 0)}
         return {k: h[k] for k in ("jitter_p50_ms", "jitter_p99_ms", "jitter_max_ms", "measured_rate_hz",
                                   "realtime")} | {"overruns": h["overruns"] - before, "state_after": st["state"],
                                                   "fault": fault["message"] if fault else None,
                                                   "fault_before": fault_before} | gcs | {
-            "machine_floor": floor, "steal_pct": 100.0 * steal}
+            "machine_floor": floor, "steal_pct": 100.0 * steal, "live_plots": live}
 
     # this thread plays a REST client inside the server's process; holding the lock at normal
     # priority it could be the very inversion the server threads avoid, so it ranks with them

@@ -739,6 +739,56 @@ def test_the_viser_publisher_never_sends_nan(live_plots: tuple[Any, Any, int]) -
             viewer.close()
 
 
+def test_the_publishers_pushes_and_failures_are_counted_and_each_failure_logged_once(
+        live_plots: tuple[Any, Any, int], caplog: pytest.LogCaptureFixture) -> None:
+    """A chart that stops moving must be told apart from a publisher that stopped pushing or whose pushes fail:
+    ``/api/health`` carries its counters, and a failure is logged (it had been swallowed in silence)."""
+    st, plots, port = live_plots
+    assert plots.status() == {"viewers": 0, "pushes": 0, "last_push_age_s": None, "errors": 0, "last_error": ""}
+    for k in range(3):
+        st.live.append((k * 0.005, 0.1, 1.2, 2.9, 3.1, 3.0, 3.0, 0.1, 0.2))
+    plots.step()
+    assert plots.status()["pushes"] == 0  # nobody watching: nothing pushed
+    viewer = _counted_viewer(plots, port)
+    try:
+        plots.step()
+        plots.step()  # no new sample: nothing pushed
+        s = plots.status()
+        assert (s["viewers"], s["pushes"], s["errors"]) == (1, 1, 0) and 0.0 <= s["last_push_age_s"] < 5.0, s
+        broken = plots.station.live
+
+        class Broken:
+            def window(self, *_: object) -> None:
+                raise ValueError("the buffer is gone")
+
+        plots.station.live = Broken()
+        with caplog.at_level("ERROR", logger="app.api.liveplots"):
+            for _ in range(3):
+                plots.step()  # never raises: the thread goes on
+        failed = [r for r in caplog.records if r.name == "app.api.liveplots"]
+        assert len(failed) == 1 and failed[0].exc_info is not None  # logged once, with its traceback
+        assert "a push failed (1 failed so far)" in failed[0].getMessage()
+        s = plots.status()
+        assert (s["pushes"], s["errors"], s["last_error"]) == (1, 3, "ValueError: the buffer is gone"), s
+        plots.station.live = broken
+        st.live.append((0.02, 0.1, 1.2, 2.9, 3.1, 3.0, 3.0, 0.1, 0.2))
+        plots.step()
+        assert plots.status()["pushes"] == 2  # and pushes again once the cause is gone
+    finally:
+        viewer.close()
+
+
+def test_health_says_whether_the_live_plots_are_fed(client: TestClient, tmp_path: Path) -> None:
+    from app.api.main import create_app
+    from app.api.settings import Settings
+
+    assert client.get("/api/health").json()["live_plots"] is None  # a station started without viser
+    with TestClient(create_app(Settings(data_dir=str(tmp_path / "v"), viser_port=free_port(),
+                                        auto_connect=False))) as c:
+        assert c.get("/api/health").json()["live_plots"] == {"viewers": 0, "pushes": 0, "last_push_age_s": None,
+                                                             "errors": 0, "last_error": ""}
+
+
 def test_the_3d_handle_turns_with_the_measured_angle_between_the_end_stops_the_station_applies(
         live_plots: tuple[Any, Any, int], tmp_path: Path) -> None:
     """Issue 5's 3-D view: the handle turns about the shaft by the measured angle, a label gives it in

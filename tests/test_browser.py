@@ -224,7 +224,8 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     # chart unchanged for 5 s, which 30 runs here, 12 of them beside a busy core, never did. A chart
     # that does not move then is named, with whether the page was visible and drew frames. That is not
     # the whole story: one more CI failure (forty-fifth session) had all four unchanged for 10 s with the
-    # page visible, 59 frames a second and the run going on, so no update reached the charts (open)
+    # page visible, 59 frames a second and the run going on, so no update reached the charts (open). The
+    # station's /api/health now says whether its publisher counted the page, pushed and failed: named too
     try:
         viser.wait_for_function("b => [...document.querySelectorAll('.uplot canvas')].every((c, i) => "
                                 "c.toDataURL() !== b[i])", arg=before, timeout=10000)
@@ -236,7 +237,8 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
         raise AssertionError(f"charts {[i for i in range(4) if after[i] == before[i]]} (torque, pressures, speed, "
                              f"error) unchanged for 10 s; the page "
                              f"{viser.evaluate('document.visibilityState')}, {frames} frames in the next second; "
-                             f"the station {_call(base, 'GET', '/api/engine')['state']}") from None
+                             f"the station {_call(base, 'GET', '/api/engine')['state']}, its publisher "
+                             f"{_call(base, 'GET', '/api/health')['live_plots']}") from None
     # headless Chromium draws WebGL in software and viser says so in a toast, which a lab's screen with
     # a GPU would not show: closed for the picture
     for close in viser.locator(".mantine-Notification-closeButton").all():

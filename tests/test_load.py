@@ -48,5 +48,10 @@ def test_the_engine_keeps_its_period_while_ten_browsers_watch_and_a_script_polls
         floor = h["machine_floor"]  # the bare pacing process beside the engine ran the whole phase
         assert floor["periods"] > 0.5 * 200.0 * 8 and floor["jitter_p50_ms"] <= floor["jitter_p99_ms"], floor
         assert 0.0 <= h["steal_pct"] <= 100.0, h
+        assert h["live_plots"]["errors"] == 0, h  # the viser publisher never failed a push
+    # the two viser pages were counted and fed: at least one chart update a second (25 at best) while
+    # the workout ran (before, nobody watched: nothing is encoded then)
+    assert r["watched"]["live_plots"]["viewers"] == 2 and r["watched"]["live_plots"]["pushes_per_s"] >= 1.0, r
+    assert r["quiet"]["live_plots"]["pushes_per_s"] == 0.0, r
     if not r["watched"]["realtime"]:
         print(f"no real-time scheduling here: {make_realtime()}")

@@ -8,8 +8,10 @@ sample has arrived; the engine loop never waits on a client.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -26,10 +28,12 @@ WINDOW_S = 10.0
 # per series and push. The panel's charts are ≈ 300 px wide; 1000 points made every viewer
 # receive 2.4 MB/s (20 viewers: 54 MB/s through the server's event loop).
 MAX_POINTS = 400
+LOG_EVERY = 1000  # a failure already logged is logged again at every this many failures
 HANDLE_STEP_RAD = 1e-3  # the 3-D handle is re-posed (and every viewer re-renders) only on a larger turn
 ARC_RADIUS_M = 0.11  # the range of motion is drawn just outside the handle's 9 cm half-length
 
 _COL = {c: i for i, c in enumerate(LIVE_COLUMNS)}
+log = logging.getLogger(__name__)
 ESTOP_HINT = ("Emergency stop: vent both chambers within one control period, from any state; "
               "latched until cleared on the Station page")
 
@@ -107,6 +111,13 @@ class LivePlots:
         self._thread: threading.Thread | None = None
         self._last_run: Any = None
         self._written = -1  # the live buffer's row count at the last push: unchanged means nothing to send
+        # what /api/health says of the publisher: a chart that stops moving is then told apart from
+        # a publisher that stopped pushing or one whose pushes fail
+        self.pushes = 0
+        self.errors = 0
+        self.last_error = ""
+        self._pushed_at = math.nan  # time.monotonic() of the last push [s]
+        self._logged: set[str] = set()
         self._theta = math.nan
         # The pages connected now, counted by viser's websocket server: ViserServer.get_clients()
         # adds a page only once its 3-D view has sent a camera, which a browser without WebGL
@@ -244,10 +255,37 @@ class LivePlots:
 
     def _run(self) -> None:
         while not self._stop.wait(1.0 / PUBLISH_HZ):
-            try:
-                self.publish()
-            except Exception:  # a plotting hiccup must never take the publisher down
-                continue
+            self.step()
+
+    def step(self) -> None:
+        """One publish, as the thread makes it: a failure is counted and logged, and the next goes on.
+
+        A plotting hiccup must never take the publisher down, nor pass unseen: each kind of
+        failure is logged once with its traceback, then every :data:`LOG_EVERY` th failure,
+        so one that repeats 25 times a second neither floods the log nor hides in it.
+        """
+        try:
+            self.publish()
+        except Exception as e:
+            self.errors += 1
+            what = f"{type(e).__name__}: {e}"[:300]
+            self.last_error = what
+            if (what not in self._logged and len(self._logged) < 100) or self.errors % LOG_EVERY == 0:
+                self._logged.add(what)
+                log.exception("live plots: a push failed (%d failed so far)", self.errors)
+
+    def status(self) -> dict[str, Any]:
+        """The publisher's counters for ``/api/health``.
+
+        Returns:
+            ``viewers`` (pages connected now), ``pushes`` (chart updates sent since start-up),
+            ``last_push_age_s`` (time since the last [s]; None before the first), ``errors``
+            (publishes that raised) and ``last_error`` (the last one's type and message).
+        """
+        age = time.monotonic() - self._pushed_at
+        return {"viewers": len(self._viewers), "pushes": self.pushes,
+                "last_push_age_s": None if math.isnan(age) else round(age, 3), "errors": self.errors,
+                "last_error": self.last_error}
 
     def publish(self) -> None:
         """Push the latest window to every client (one call; the thread calls it at :data:`PUBLISH_HZ`).
@@ -293,6 +331,8 @@ class LivePlots:
             with np.errstate(invalid="ignore", divide="ignore"):
                 err = np.where(np.abs(tgt) > 0, 100.0 * (tgt - tq) / np.abs(tgt), 0.0)
             self.h_err.data = (t, np.nan_to_num(err, nan=0.0, posinf=0.0, neginf=0.0))
+            self.pushes += 1
+            self._pushed_at = time.monotonic()
             th = float(r[-1, _COL["theta"]])
             if self._rig_shown[0] != "rotary":  # the position column holds the piston's [m]
                 if not abs(th - self._pos) < 1e-3:  # a whole millimetre, as the label reads it

@@ -104,6 +104,25 @@ Notes = Annotated[str, Field(max_length=2000)]
 SessionRef = Annotated[int | None, Field(ge=1, le=2**62, description="therapy session (person taken from it)")]
 
 
+class LivePlotsHealth(Documented):
+    """The viser live plots' publisher.
+
+    Attributes:
+        viewers: Pages connected now.
+        pushes: Chart updates sent since start-up (one carries all four charts; none while
+            nobody watches or no new sample came).
+        last_push_age_s: Time since the last update [s]; None before the first.
+        errors: Publishes that raised (each kind logged once with its traceback).
+        last_error: The last failure's type and message; empty if none.
+    """
+
+    viewers: int
+    pushes: int
+    last_push_age_s: float | None
+    errors: int
+    last_error: str
+
+
 class Health(Documented):
     """Engine health.
 
@@ -123,6 +142,7 @@ class Health(Documented):
             waits before it may ask another thread to hand over the interpreter lock.
         heap_frozen: Objects exempted from garbage collection at the last connect.
         heap_refreeze_ms: How long the last periodic collect-and-freeze took [ms].
+        live_plots: The viser live plots' publisher; None when the station runs without them.
     """
 
     state: str
@@ -139,6 +159,7 @@ class Health(Documented):
     switch_interval_ms: float = 0.0
     heap_frozen: int = 0
     heap_refreeze_ms: float = 0.0
+    live_plots: LivePlotsHealth | None = None
 
 
 class RigInfo(Documented):

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ, THERAPIST
 from app.api.deps import StationDep, StoreDep
@@ -35,10 +35,12 @@ CONFLICT: dict[int | str, dict[str, Any]] = {409: {"description": "Illegal in th
 
 
 @router.get("/health", response_model=Health, summary="Engine state, loop rate, jitter and overruns")
-def health(station: StationDep) -> Health:
+def health(station: StationDep, request: Request) -> Health:
     """Needs no token: the Docker health check and a lab's monitoring read it. Jitter and overruns are
-    the paced loop's since it last started (a connect, a procedure's end)."""
-    return Health(**station.health())
+    the paced loop's since it last started (a connect, a procedure's end); `live_plots` says whether
+    the viser charts are being fed."""
+    plots = getattr(request.app.state, "plots", None)
+    return Health(**station.health(), live_plots=plots.status() if plots is not None else None)
 
 
 @router.get("/engine", dependencies=[READ], responses=AUTH_RESPONSES, response_model=EngineStatus,
