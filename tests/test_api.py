@@ -157,6 +157,30 @@ def test_guided_form_unlocks_in_order(client: TestClient) -> None:
     assert client.post("/api/forms/rotary", json={"values": {"nope": 1}}).status_code == 422
 
 
+def test_each_form_suggests_the_rigs_own_geometry(client: TestClient) -> None:
+    """The rotary form suggests the forearm robot's DRVS-32-270 (thesis 3.2.1), the linear one the chosen
+    cylinder's catalogue geometry (thesis 3.2.4: C1/C2 DSNUP-25-225, C3 DSBC-32-300): the dashboard had
+    suggested C3's 300 mm stroke and 32 mm piston whichever cylinder was connected."""
+    def suggested(rig: str, **body: object) -> dict[str, float]:
+        r = client.post(f"/api/forms/{rig}", json={"values": {}, **body})
+        assert r.status_code == 200, r.text
+        return {f["name"]: f["suggested"] for f in r.json()["fields"]}
+
+    assert suggested("rotary") == {"rom_deg": 270.0, "vane_area_mm2": 855.0, "radius_mm": 23.0, "ns": 30.0,
+                                   "nd": 30.0, "pw_bar": 3.0}
+    c1 = {"stroke_mm": 225.0, "piston_diameter_mm": 25.0, "rod_diameter_mm": 10.0, "ns": 30.0, "nd": 30.0}
+    assert suggested("linear", cylinder="C1") == suggested("linear", cylinder="C2") == c1
+    assert suggested("linear") == suggested("linear", cylinder="C3") == {**c1, "stroke_mm": 300.0,
+                                                                         "piston_diameter_mm": 32.0,
+                                                                         "rod_diameter_mm": 12.0}
+    # the suggestions pass the form's own rules, typed as suggested
+    for rig, cyl in (("rotary", "C3"), ("linear", "C1"), ("linear", "C3")):
+        r = client.post(f"/api/forms/{rig}", json={"values": suggested(rig, cylinder=cyl), "cylinder": cyl}).json()
+        assert r["ready"] and r["refused"] is None, r
+    r = client.post("/api/forms/linear", json={"values": {}, "cylinder": "C4"})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "cylinder"]
+
+
 def test_a_scenario_run_streams_live_data_then_stores_metrics_and_exports(client: TestClient) -> None:
     client.post("/api/engine/connect")
     sess = client.post("/api/sessions", json={"person": "P-007", "notes": "left arm"}).json()
@@ -500,8 +524,17 @@ def test_the_linear_rig_runs_the_linear_identification_and_refuses_workouts(clie
     r = client.post("/api/engine/estimate/linear", json={"stroke_mm": 225, "piston_diameter_mm": 25,
                                                          "rod_diameter_mm": 30})
     assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "rod_diameter_mm"
-    r = client.post("/api/engine/estimate/linear", json={"stroke_mm": 225, "piston_diameter_mm": 25,
-                                                         "rod_diameter_mm": 10})
+    # C3's 300 mm (what the dashboard suggested on every cylinder) on the simulated C1's 225: its static tests
+    # would be placed past the end and no dynamic test would move (the fit then fails: "fewer than 3 valid
+    # dynamic tests (0)"), so it is refused before anything moves
+    r = client.post("/api/engine/estimate/linear", json={"stroke_mm": 300})
+    assert r.status_code == 422 and r.json()["detail"][0] == {
+        "loc": ["body", "stroke_mm"], "type": "value_error",
+        "msg": "stroke_mm = 300: longer than the simulated cylinder C1's stroke (225 mm), so its static tests "
+               "would be placed past the end; enter the cylinder's stroke or less"}
+    assert client.get("/api/engine").json()["state"] == "idle" and client.get("/api/runs").json() == []
+    # the dimensions left out are the connected cylinder's, from the catalogue
+    r = client.post("/api/engine/estimate/linear", json={})
     assert r.status_code == 200 and r.json()["status"]["state"] == "identifying"
     assert client.get("/api/health").json()["rate_hz"] == 200.0  # thesis 4.2.2: the linear rig at 200 Hz
     st = wait_engine(client, lambda s: (s["progress"] or {}).get("k", 0) >= 1, timeout=30.0)
@@ -510,7 +543,9 @@ def test_the_linear_rig_runs_the_linear_identification_and_refuses_workouts(clie
     st = wait_engine(client, lambda s: s["state"] == "idle", timeout=10.0)
     assert st["last_run"]["status"] == "cancelled"
     run = client.get("/api/runs", params={"kind": "linear_friction"}).json()[0]
-    assert run["spec"]["piston_diameter_mm"] == 25 and run["status"] == "cancelled"
+    assert run["status"] == "cancelled"
+    assert {k: run["spec"][k] for k in ("stroke_mm", "piston_diameter_mm", "rod_diameter_mm")} == {
+        "stroke_mm": 225, "piston_diameter_mm": 25, "rod_diameter_mm": 10}
     # what it drove is kept, in the log format, as far as it went (the thesis's GUIs kept each experiment)
     assert run["has_series"]
     series = client.get(f"/api/runs/{run['id']}/series").json()

@@ -716,10 +716,18 @@ def test_on_the_linear_rig_the_live_bar_shows_the_piston_along_the_cylinders_str
             return [document.getElementById('handle-angle').textContent,
                     parseFloat(document.getElementById('handle-mark').getAttribute('x'))]; }""")
         assert said == "Piston: 100 of 225 mm extended" and x == pytest.approx(100 * 100 / 225, abs=0.01)
+        # the friction form is the linear GUI's, suggesting C1's catalogue stroke (it had suggested C3's
+        # 300 mm on every cylinder, which sends C1's static tests past the end of its 225 mm)
+        expect(page.locator("#ident-title")).to_have_text("Friction identification (linear test cylinder C1)")
+        expect(page.locator("#f-stroke_mm")).to_have_attribute("placeholder", "suggested: 225")
+        page.fill("#f-stroke_mm", "225")
+        page.locator("#f-stroke_mm").dispatch_event("change")
+        expect(page.locator("#f-piston_diameter_mm")).to_have_attribute("placeholder", "suggested: 25")
         # back on the forearm robot, the angle again
         _call(base, "POST", "/api/engine/disconnect")
         _call(base, "POST", "/api/engine/connect", {"rig": "rotary"})
         expect(page.locator("#rig")).to_have_value("rotary", timeout=10_000)
+        expect(page.locator("#f-rom_deg")).to_have_attribute("placeholder", "suggested: 270")
         expect(page.locator("#gauge-caption")).to_contain_text("supination", timeout=10_000)
         expect(page.locator("#handle-angle")).to_contain_text("Handle: ", timeout=10_000)
     finally:

@@ -299,9 +299,9 @@ class LinearIdentRequest(Documented):
     """Linear friction identification inputs (thesis Figure 3.27, Appendix 2 rules).
 
     Attributes:
-        stroke_mm: Stroke [mm].
-        piston_diameter_mm: Piston diameter [mm].
-        rod_diameter_mm: Rod diameter [mm].
+        stroke_mm: Stroke [mm]; omitted, the connected cylinder's catalogue stroke.
+        piston_diameter_mm: Piston diameter [mm]; omitted, the connected cylinder's.
+        rod_diameter_mm: Rod diameter [mm]; omitted, the connected cylinder's.
         ns: Static experiments per direction (≥ 30).
         nd: Dynamic experiments per direction (≥ 30).
         seed: Seed of the random test positions and levels.
@@ -309,9 +309,9 @@ class LinearIdentRequest(Documented):
 
     model_config = ConfigDict(extra="forbid")
 
-    stroke_mm: float = 300.0
-    piston_diameter_mm: float = 32.0
-    rod_diameter_mm: float = 12.0
+    stroke_mm: float | None = None
+    piston_diameter_mm: float | None = None
+    rod_diameter_mm: float | None = None
     ns: int = 30
     nd: int = 30
     seed: int = Field(0, ge=0, le=2**31 - 1)
@@ -662,11 +662,14 @@ class FormCheckIn(Documented):
 
     Attributes:
         values: Field → value, in the order typed.
+        cylinder: The linear rig's cylinder, whose catalogue geometry the linear form suggests
+            (``C1``, ``C2`` or ``C3``; the rotary form ignores it).
     """
 
     model_config = ConfigDict(extra="forbid")
 
     values: dict[str, float]
+    cylinder: Literal["C1", "C2", "C3"] = "C3"
 
 
 class FieldState(Documented):
@@ -677,12 +680,15 @@ class FieldState(Documented):
         label: Label with unit.
         valid: Turned green.
         editable: Open for input now.
+        suggested: What the field suggests before anything is typed, in its unit: the forearm
+            robot's geometry, the chosen cylinder's catalogue geometry, the GUIs' 30 tests.
     """
 
     name: str
     label: str
     valid: bool
     editable: bool
+    suggested: float
 
 
 class FormState(Documented):

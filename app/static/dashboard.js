@@ -6,6 +6,7 @@ const METRICS = {mae: 'MAE [N·m]', iae: 'IAE [N·m·s]', itae: 'ITAE [N·m·s²
 let status = {state: 'disconnected', allowed: []};
 let identReady = false;
 let identRig = 'rotary';
+let identCyl = 'C3';  // the linear form suggests this cylinder's catalogue geometry
 
 // a refusal names the field as the form labels it, not as the API spells it
 const FIELD_NAMES = {target_nm: 'Target torque', person: 'Person id', session_id: 'Therapy session',
@@ -53,7 +54,10 @@ function render(st) {
   }
   const rigKind = st.rig ? st.rig.kind : $('rig').value.split(':')[0];
   const formRig = rigKind === 'cpr' ? identRig : rigKind;  // the friction form stays as it was on the valve set-up
-  if (formRig !== identRig) { identRig = formRig; $('ident-fields').innerHTML = ''; checkForm(); }
+  const rigCyl = st.rig ? st.rig.cylinder : ($('rig').value.split(':')[1] || 'C3');
+  const formCyl = rigKind === 'cpr' ? identCyl : rigCyl;
+  if (formRig !== identRig) { identRig = formRig; identCyl = formCyl; $('ident-fields').innerHTML = ''; checkForm(); }
+  else if (formCyl !== identCyl) { identCyl = formCyl; if (identRig === 'linear') checkForm(); }
   $('dcv-box').hidden = rigKind !== 'cpr';
   $('pid-box').hidden = rigKind !== 'rotary';
   // the linear cylinder's load cell measures a force, and nothing there follows a torque target
@@ -616,8 +620,6 @@ document.querySelectorAll('[data-action]').forEach(b => b.addEventListener('clic
 }));
 
 // ------------------------------------------------------- guided forms (thesis Appendices 1 and 2)
-const IDENT_DEFAULTS = {rom_deg: 270, vane_area_mm2: 855, radius_mm: 23, ns: 30, nd: 30, pw_bar: 3,
-                        stroke_mm: 300, piston_diameter_mm: 32, rod_diameter_mm: 12};
 function identValues() {
   const v = {};
   document.querySelectorAll('#ident-fields input').forEach(i => { if (i.value !== '') v[i.name] = parseFloat(i.value); });
@@ -625,17 +627,17 @@ function identValues() {
 }
 async function checkForm() {
   const v = identValues();
-  const rig = identRig;
+  const rig = identRig, cylinder = identCyl;
   let st;
-  try { st = await api('POST', `/api/forms/${rig}`, {values: v}); }
+  try { st = await api('POST', `/api/forms/${rig}`, {values: v, cylinder}); }
   catch (e) {
     // unchecked, the form is not ready: Run identification stays off until the station answers
     if (rig === identRig) { say('ident-msg', `The form could not be checked: ${e.message}`, false); identReady = false; render(status); }
     return;
   }
   const box = $('ident-fields');
-  if (rig !== identRig) return;  // the rig changed while the form was being checked
-  $('ident-title').textContent = `Friction identification (${rig === 'rotary' ? 'rotary, forearm robot' : 'linear test cylinder'})`;
+  if (rig !== identRig || cylinder !== identCyl) return;  // the rig changed while the form was being checked
+  $('ident-title').textContent = `Friction identification (${rig === 'rotary' ? 'rotary, forearm robot' : `linear test cylinder ${cylinder}`})`;
   if (!box.children.length) {
     box.innerHTML = st.fields.map(f =>
       `<label for="f-${f.name}">${esc(f.label)}</label><input id="f-${f.name}" name="${f.name}" type="number" step="any">`
@@ -647,7 +649,8 @@ async function checkForm() {
     const i = $('f-' + f.name);
     i.classList.toggle('valid', f.valid);
     i.disabled = !f.editable;  // thesis GUI: a valid field turns green and locks; Clear starts over
-    if (f.editable && i.value === '') i.placeholder = `suggested: ${IDENT_DEFAULTS[f.name]}`;
+    // the station's suggestion: on the linear rig, the chosen cylinder's catalogue geometry
+    i.placeholder = f.editable && i.value === '' ? `suggested: ${f.suggested}` : '';
   });
   say('ident-msg', st.message, !st.refused);
   identReady = st.ready;

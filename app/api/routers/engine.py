@@ -130,14 +130,26 @@ def estimate(req: RotaryIdentRequest, station: StationDep) -> Started:
              summary="idle → identifying: linear friction identification (thesis 3.2.4, 200 Hz, linear rig)")
 def estimate_linear(req: LinearIdentRequest, station: StationDep) -> Started:
     """Appendix 2's experiments on the connected linear cylinder; F_s, F_c, v_s and B per direction, as the
-    rotary identification reports them, plus the moving mass its inertia correction fitted."""
-    from app.engine.ident.gui_rules import LinearInputs
+    rotary identification reports them, plus the moving mass its inertia correction fitted. A dimension left
+    out is the connected cylinder's catalogue value. On the simulator a stroke longer than the simulated
+    cylinder's is refused: its static tests would be placed past the end, and none would move."""
+    from app.engine.ident.gui_rules import LinearInputs, suggested_values
     from app.engine.ident.linear import LinearFrictionEstimator, LinearFrictionProcedure
 
-    inputs = LinearInputs(req.stroke_mm, req.piston_diameter_mm, req.rod_diameter_mm, req.ns, req.nd)
+    rig = station.rig
+    catalogue = suggested_values("linear", rig.cylinder)  # type: ignore[arg-type]  # Rig checks the name
+    spec = req.model_dump()
+    for k in ("stroke_mm", "piston_diameter_mm", "rod_diameter_mm"):
+        if spec[k] is None:
+            spec[k] = catalogue[k]
+    inputs = LinearInputs(spec["stroke_mm"], spec["piston_diameter_mm"], spec["rod_diameter_mm"], req.ns, req.nd)
+    simulated = station.backend is not None and station.backend.name == "sim"
+    if simulated and rig.kind == "linear" and inputs.stroke_mm > catalogue["stroke_mm"]:
+        raise ParameterError(f"stroke_mm = {inputs.stroke_mm:g}: longer than the simulated cylinder {rig.cylinder}'s "
+                             f"stroke ({catalogue['stroke_mm']:g} mm), so its static tests would be placed past the "
+                             "end; enter the cylinder's stroke or less")
     return _identify(station, LinearFrictionProcedure(inputs, seed=req.seed, p_atm_bar=station.p_atm_bar),
-                     LinearFrictionEstimator,
-                     "linear", req.model_dump())
+                     LinearFrictionEstimator, "linear", spec)
 
 
 @router.post("/engine/estimate/dcv", dependencies=[ADMIN], response_model=Started, responses=CONFLICT,

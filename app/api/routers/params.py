@@ -10,7 +10,7 @@ from app.api.auth import ADMIN, AUTH_RESPONSES, READ
 from app.api.deps import IdPath, StoreDep
 from app.api.models import FieldState, FormCheckIn, FormState, ParamSet, ParamSetIn
 from app.engine import paramsets
-from app.engine.ident.gui_rules import GuidedForm
+from app.engine.ident.gui_rules import GuidedForm, suggested_values
 
 router = APIRouter(prefix="/api", tags=["parameters"], dependencies=[READ], responses=AUTH_RESPONSES)
 
@@ -21,7 +21,7 @@ def check_form(rig: Annotated[Literal["rotary", "linear"], Path(description=(
                body: FormCheckIn) -> FormState:
     """Enters the values in order, as a person types them into the GUI: each field unlocks when the one
     before is valid, and the first refused one stops the entry with the GUI's own message. Nothing is
-    stored."""
+    stored. Each field says what it suggests: on the linear form, the catalogue geometry of `cylinder`."""
     form = GuidedForm(rig)
     refused: str | None = None
     message = form.message
@@ -32,8 +32,9 @@ def check_form(rig: Annotated[Literal["rotary", "linear"], Path(description=(
             refused = name
             break
     editable = form.editable
-    fields = [FieldState(name=r.name, label=r.label, valid=bool(form.valid.get(r.name)), editable=r.name == editable)
-              for r in form.rules]
+    suggested = suggested_values(rig, body.cylinder)
+    fields = [FieldState(name=r.name, label=r.label, valid=bool(form.valid.get(r.name)), editable=r.name == editable,
+                         suggested=suggested[r.name]) for r in form.rules]
     return FormState(fields=fields, message=message, ready=form.phase == "ready", refused=refused)
 
 

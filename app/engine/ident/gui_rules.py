@@ -43,7 +43,7 @@ def _positive(v: float) -> bool:
 
 
 def _count(v: float) -> bool:
-    return math.isfinite(v) and v >= 30 and float(v).is_integer()
+    return math.isfinite(v) and v >= MIN_TESTS and float(v).is_integer()
 
 
 @dataclass(frozen=True)
@@ -87,6 +87,37 @@ LINEAR_FIELDS: tuple[FieldRule, ...] = (
     FieldRule("ns", "# of static experiments N_s", _count, MSG_N, "Enter number of dynamic experiments"),
     FieldRule("nd", "# of dynamic experiments N_d", _count, MSG_N, MSG_LINEAR_READY),
 )
+
+
+MIN_TESTS = 30  # Appendix 1/2: "suggested as >=30" experiments per kind
+
+
+def suggested_values(rig: Literal["rotary", "linear"], cylinder: Literal["C1", "C2", "C3"] = "C3") -> dict[str, float]:
+    """What each field of a form suggests before anything is typed.
+
+    The rotary form suggests the forearm robot's DRVS-32-270 (thesis 3.2.1: ROM, A_v = H·W, r = (D2 + H)/2)
+    and the linear form the catalogue geometry of ``cylinder`` (thesis Tables 4.5–4.6's cylinders): a
+    suggestion for a 300 mm C3 left on a 225 mm C1 would send its static tests past the end of the stroke
+    and scale every force by the wrong piston area. Both suggest the GUIs' minimum of 30 tests per kind
+    and the rotary one the thesis's working pressure (3 bar abs, :class:`RotaryInputs`).
+
+    Args:
+        rig: Which form.
+        cylinder: The linear rig's cylinder (ignored by the rotary form).
+
+    Returns:
+        Field name → suggested value, in the fields' units.
+    """
+    from app.engine.params import LinearCylinder, VaneCylinder
+
+    if rig == "rotary":
+        v = VaneCylinder()
+        return {"rom_deg": v.rom_deg, "vane_area_mm2": round(v.vane_area * 1e6, 6),
+                "radius_mm": round(v.radius * 1e3, 6), "ns": MIN_TESTS, "nd": MIN_TESTS,
+                "pw_bar": RotaryInputs().pw_bar}
+    c = LinearCylinder.catalogue(cylinder)
+    return {"stroke_mm": round(c.stroke * 1e3, 6), "piston_diameter_mm": round(c.bore * 1e3, 6),
+            "rod_diameter_mm": round(c.rod * 1e3, 6), "ns": MIN_TESTS, "nd": MIN_TESTS}
 
 
 def _check_fields(obj: object, rules: tuple[FieldRule, ...]) -> None:
