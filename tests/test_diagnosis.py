@@ -1171,3 +1171,51 @@ def test_a_better_baseline_the_calibration_logs_do_not_prefer_is_said_for_what_i
                          "and held-out logs see differently (drift, or a regime only one of them visits)")
     assert core._summary([], [], gap, beaten | {"rereferenced": True}).endswith(
         "the baseline was recalibrated from there and every candidate judged against that")
+
+
+def test_the_form_recalibration_carries_two_forms_so_a_near_tie_does_not_decide_the_next_groups(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a rig written apart from ours logged at 1 kHz, the valve's centre descended to 0.63 closed at 0.985 ×
+    the cost of 0.75 closed, and from 0.63 no regulator form gained what matters, where from 0.75 it took the
+    cost to 0.42 × (docs/diagnosis-record.md, "Two forms carried on"). The search is replayed here on those
+    costs: with one form carried it ends at 0.63 and the nominal regulator; with two, at the regulator's form."""
+    from app.engine.diagnosis.core import Fit, Param
+
+    centre = (Param("closure", 0.0, 0.0, 1.0), Param("band", 0.2, 0.0, 0.4))
+    regulator = (Param("dead_zone", 0.0, 0.0, 1.0),)
+
+    class Family:
+        form_grids = (centre, regulator)
+        base_grids = ((Param("c", 1.0, 0.3, 3.0, log=True),),)
+
+        def baseline(self) -> list[Param]:
+            return [*self.base_grids[0], *centre, *regulator]
+
+    def fitted(rss: float, **form: float) -> Fit:
+        return Fit((), {"c": 1.0, "closure": 0.0, "band": 0.2, "dead_zone": 0.0} | form, {}, [], np.eye(1), 1.0, rss,
+                   100, 1)
+
+    nominal = fitted(23.5)
+    # what each group's grids and descents give from each fit (the rig's costs, ×10⁶)
+    descents = {(0.0, "closure"): [fitted(3.95, closure=0.634, band=0.0685), fitted(4.01, closure=0.754, band=0.098),
+                                   fitted(4.06, closure=0.75, band=0.099)],
+                (0.634, "dead_zone"): [fitted(3.42, closure=0.749, band=0.0736, dead_zone=0.505)],
+                (0.754, "dead_zone"): [fitted(1.69, closure=1.0, band=0.019, dead_zone=0.966),
+                                       fitted(3.84, closure=0.75, band=0.098, dead_zone=0.504)]}
+
+    def form_descents(_family: Any, _calib: Any, base: Fit, group: list[Param], *_: Any) -> list[Fit]:
+        return descents.get((round(base.params["closure"], 3), group[0].name), [])
+
+    monkeypatch.setattr(core, "_recalibrated", lambda *a, **k: nominal)
+    monkeypatch.setattr(core, "_form_descents", form_descents)
+    # what matters on the rig: the regulator's form from 0.63 gains too little (3.95 → 3.42 is under it)
+    monkeypatch.setattr(core, "_relevant_gain", lambda _f, _c, a, b: a.rss - b.rss > 1.0)
+    for beam, ends in ((1, (0.634, 0.0)), (2, (1.0, 0.966))):
+        monkeypatch.setattr(core, "FORM_BEAM", beam)
+        nom, formed = core.recalibrate_forms(Family(), [], scales={"p": 1.0})  # type: ignore[arg-type]
+        assert nom is nominal and (formed.params["closure"], formed.params["dead_zone"]) == ends, beam
+    # two fits of one form (0.754 and 0.75 closed, 0.098 and 0.099 V) are one: the second carried is another form
+    assert not core._forms_apart(descents[0.0, "closure"][1].params, descents[0.0, "closure"][2].params,
+                                 [*centre, *regulator])
+    assert core._forms_apart(descents[0.0, "closure"][0].params, descents[0.0, "closure"][1].params,
+                             [*centre, *regulator])

@@ -51,7 +51,8 @@ def test_only_the_thesiss_pid_gains_toggle_a_chamber_past_the_warning(controller
     bar) and the Cascade PID with Eq 3.26's gains, whose counter chamber toggles by 0.24 bar in SC-1 (its
     loop gain grows as that chamber shrinks: docs/controllers.md)."""
     case = next(c for c in main_cases() if c.scenario == "SC-1" and c.target == 1.2)
-    rec = run_case(case, controller, seed=0).record()  # what `cwrr sim` and the thesis bench report
+    run = run_case(case, controller, seed=0)
+    rec = run.record()  # what `cwrr sim` and the thesis bench report
     toggles = [rec["pressure_toggle_bar"][c] for c in ("p_a", "p_b")]
     if loud:
         assert toggles[1] > 5 * mt.TOGGLE_WARN_BAR and toggles[0] < mt.TOGGLE_WARN_BAR, toggles
@@ -59,6 +60,10 @@ def test_only_the_thesiss_pid_gains_toggle_a_chamber_past_the_warning(controller
         assert warning.startswith(f"Chamber b's pressure toggled every control period (±{toggles[1]:.2f} bar"), warning
     else:
         assert max(toggles) < mt.TOGGLE_WARN_BAR / 3 and "warnings" not in rec, rec
+    # and how far the simulated arm went, as the station's exercises say it (SC-1 at +1.2 N·m: towards pronation)
+    lo, hi = rec["angle_range_deg"]
+    theta = np.degrees(run.result.column("theta"))
+    assert (lo, hi) == (pytest.approx(theta.min()), pytest.approx(theta.max())) and hi > 20.0, (lo, hi)
 
 
 def test_metrics_itae_is_relative_to_window_start() -> None:

@@ -4,10 +4,13 @@ All take the sample times ``t`` [s] and the tracking error ``e`` = target −
 measured interaction torque [N·m] over the evaluation window. Integrals use
 the trapezoidal rule on the samples; ITAE weights by the time since the start
 of the window (the thesis evaluates "from convergence, or from t_d").
+Beside them, what a run tells a therapist besides how well the torque was
+tracked: a pressure loop's chatter and how far the arm went.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -130,3 +133,22 @@ def toggle_report(t: np.ndarray, p_a: np.ndarray, p_b: np.ndarray, window: tuple
                            "the scored window): the pressure-loop gains are too high for this rig's valves, and "
                            "the metrics include that chatter." for c, v in loud]
     return out
+
+
+def angle_range_deg(theta: np.ndarray) -> list[float] | None:
+    """The range of motion an exercise reached: the lowest and highest measured angle [deg].
+
+    A therapist follows a person's active range from session to session; the
+    six metrics say how well the torque was tracked, not how far the arm went.
+
+    Args:
+        theta: The vane angle over the exercise's program, one sample per period
+            [rad, positive: pronation].
+
+    Returns:
+        ``[lowest, highest]`` [deg, positive: pronation], or None with no finite sample.
+    """
+    th = theta[np.isfinite(theta)]
+    if th.size == 0:
+        return None
+    return [math.degrees(float(th.min())), math.degrees(float(th.max()))]

@@ -33,7 +33,7 @@ import numpy as np
 from app.engine.control.config import ControllerConfig, ControllerName
 from app.engine.control.fuzzy import FuzzyConfig
 from app.engine.human import HumanProgram, isotonic
-from app.engine.metrics import all_metrics, toggle_report
+from app.engine.metrics import all_metrics, angle_range_deg, toggle_report
 from app.engine.params import ParameterError, PlantParams, check_range
 from app.engine.sim import WorkoutResult, run_workout
 
@@ -162,6 +162,8 @@ class CaseRun:
             "window_s": [self.window[0], self.window[1]], "t_engage_s": self.t_engage, "t_d_s": self.t_d,
             **toggle_report(self.result.column("t"), self.result.column("p_a"), self.result.column("p_b"),
                             self.window),
+            # how far the simulated arm went, as the station's exercises report it
+            "angle_range_deg": angle_range_deg(self.result.column("theta")),
         }
 
 

@@ -43,7 +43,7 @@ from app.engine.hardware.base import RIG_KINDS, SAFE_COMMAND, Command, HardwareI
 from app.engine.hardware.config import HardwareConfig, save_config
 from app.engine.hardware.factory import make_factory
 from app.engine.loop import REFREEZE_S, Controller, Engine, Recorder, WallClock, refreeze_heap, settle_heap
-from app.engine.metrics import toggle_report
+from app.engine.metrics import angle_range_deg, toggle_report
 from app.engine.params import LinearCylinder, ParameterError, PlantParams, SensorParams, check_range
 from app.engine.runlog import RunLogWriter, new_log_name
 from app.engine.safety import RELEASE_S, SafetyLimits, SafetySupervisor, release_command
@@ -321,25 +321,6 @@ class Supervisor:
         """Commands for this period."""
         job = self.job
         return job.step(meas, dt) if job is not None else self.safe
-
-
-def angle_range_deg(theta: np.ndarray) -> list[float] | None:
-    """The range of motion an exercise reached: the lowest and highest measured angle [deg].
-
-    A therapist follows a person's active range from session to session; the
-    six metrics say how well the torque was tracked, not how far the arm went.
-
-    Args:
-        theta: The vane angle over the exercise's program, one sample per period
-            [rad, positive: pronation].
-
-    Returns:
-        ``[lowest, highest]`` [deg, positive: pronation], or None with no finite sample.
-    """
-    th = theta[np.isfinite(theta)]
-    if th.size == 0:
-        return None
-    return [math.degrees(float(th.min())), math.degrees(float(th.max()))]
 
 
 @dataclass
