@@ -38,6 +38,9 @@ MSG_ENDED = "Experiment process is ended and system is disconnected!"
 MSG_DISCONNECTED = "System is disconnected!"
 
 
+MIN_TESTS = 30  # Appendix 1/2: "suggested as >=30" experiments per kind
+
+
 def _positive(v: float) -> bool:
     return math.isfinite(v) and v > 0.0
 
@@ -87,9 +90,6 @@ LINEAR_FIELDS: tuple[FieldRule, ...] = (
     FieldRule("ns", "# of static experiments N_s", _count, MSG_N, "Enter number of dynamic experiments"),
     FieldRule("nd", "# of dynamic experiments N_d", _count, MSG_N, MSG_LINEAR_READY),
 )
-
-
-MIN_TESTS = 30  # Appendix 1/2: "suggested as >=30" experiments per kind
 
 
 def suggested_values(rig: Literal["rotary", "linear"], cylinder: Literal["C1", "C2", "C3"] = "C3") -> dict[str, float]:
