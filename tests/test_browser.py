@@ -723,6 +723,13 @@ def test_on_the_linear_rig_the_live_bar_shows_the_piston_along_the_cylinders_str
         page.fill("#f-stroke_mm", "225")
         page.locator("#f-stroke_mm").dispatch_event("change")
         expect(page.locator("#f-piston_diameter_mm")).to_have_attribute("placeholder", "suggested: 25")
+        # C3 connected instead: the form starts over with its geometry (C1's 225 mm typed there is not C3's)
+        _call(base, "POST", "/api/engine/disconnect")
+        _call(base, "POST", "/api/engine/connect", {"rig": "linear", "cylinder": "C3"})
+        expect(page.locator("#ident-title")).to_have_text("Friction identification (linear test cylinder C3)",
+                                                          timeout=10_000)
+        expect(page.locator("#f-stroke_mm")).to_have_value("")
+        expect(page.locator("#f-stroke_mm")).to_have_attribute("placeholder", "suggested: 300")
         # back on the forearm robot, the angle again
         _call(base, "POST", "/api/engine/disconnect")
         _call(base, "POST", "/api/engine/connect", {"rig": "rotary"})

@@ -56,8 +56,10 @@ function render(st) {
   const formRig = rigKind === 'cpr' ? identRig : rigKind;  // the friction form stays as it was on the valve set-up
   const rigCyl = st.rig ? st.rig.cylinder : ($('rig').value.split(':')[1] || 'C3');
   const formCyl = rigKind === 'cpr' ? identCyl : rigCyl;
-  if (formRig !== identRig) { identRig = formRig; identCyl = formCyl; $('ident-fields').innerHTML = ''; checkForm(); }
-  else if (formCyl !== identCyl) { identCyl = formCyl; if (identRig === 'linear') checkForm(); }
+  // another rig, or another cylinder on the linear one, starts the form over: what was typed was for the other
+  if (formRig !== identRig || (formRig === 'linear' && formCyl !== identCyl)) {
+    identRig = formRig; identCyl = formCyl; $('ident-fields').innerHTML = ''; checkForm();
+  } else identCyl = formCyl;
   $('dcv-box').hidden = rigKind !== 'cpr';
   $('pid-box').hidden = rigKind !== 'rotary';
   // the linear cylinder's load cell measures a force, and nothing there follows a torque target
