@@ -790,7 +790,7 @@ def test_the_publishers_pushes_and_failures_are_counted_and_each_failure_logged_
         plots.step()  # no new sample: nothing pushed
         s = plots.status()
         assert (s["viewers"], s["pushes"], s["errors"]) == (1, 1, 0) and 0.0 <= s["last_push_age_s"] < 5.0, s
-        broken = plots.station.live
+        buffer = plots.station.live
 
         class Broken:
             def window(self, *_: object) -> None:
@@ -805,7 +805,7 @@ def test_the_publishers_pushes_and_failures_are_counted_and_each_failure_logged_
         assert "a push failed (1 failed so far)" in failed[0].getMessage()
         s = plots.status()
         assert (s["pushes"], s["errors"], s["last_error"]) == (1, 3, "ValueError: the buffer is gone"), s
-        plots.station.live = broken
+        plots.station.live = buffer
         st.live.append((0.02, 0.1, 1.2, 2.9, 3.1, 3.0, 3.0, 0.1, 0.2))
         plots.step()
         assert plots.status()["pushes"] == 2  # and pushes again once the cause is gone

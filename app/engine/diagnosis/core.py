@@ -1319,9 +1319,9 @@ def recalibrate_forms(family: Family, calib: list[Any], scales: dict[str, float]
         names = [p.name for p in group]
         carried: list[tuple[Fit, list[str]]] = []
         for base, held in chains:
-            kept = [d for d in _form_descents(family, calib, base, group, held, at_nominal, nominal, scales, stop)
-                    if d.rss < base.rss and _relevant_gain(family, calib, base, d)]
             free = [n for n in held if n not in names]
+            kept = [d for d in _form_descents(family, calib, base, group, free, at_nominal, nominal, scales, stop)
+                    if d.rss < base.rss and _relevant_gain(family, calib, base, d)]
             carried += [(d, free) for d in kept] or [(base, held)]
         chains = []
         for fit_, held in sorted(carried, key=lambda c: c[0].rss):
@@ -1332,10 +1332,11 @@ def recalibrate_forms(family: Family, calib: list[Any], scales: dict[str, float]
     return nominal_form, chains[0][0]
 
 
-def _form_descents(family: Family, calib: list[Any], base: Fit, group: list[Param], held: list[str],
+def _form_descents(family: Family, calib: list[Any], base: Fit, group: list[Param], hold: list[str],
                    at_nominal: dict[str, float], nominal: dict[str, float], scales: dict[str, float],
                    stop: threading.Event | None) -> list[Fit]:
-    """The fits with ``group`` free descended from its grid's best points (none where no grid point is cheaper).
+    """The fits with ``group`` free descended from its grid's best points (none where no grid point is cheaper),
+    the form parameters in ``hold`` held at nominal.
 
     The form's grid runs from the fit so far (the gains and friction it fitted): from the
     nominal values, a PRV regulator of another form was gridded with the pressure gains at
@@ -1354,10 +1355,9 @@ def _form_descents(family: Family, calib: list[Any], base: Fit, group: list[Para
     again, _ = _grid_best(family, calib, (), base.params | at_nominal, group, 3, scales)
     if any(again[n] != nominal[n] for n in names):
         starts.setdefault(tuple(again[n] for n in names), again)
-    free = [n for n in held if n not in names]
     # each from there and with the gridded parameters at nominal
     tried = {tuple(sorted(s.items())): s for st in starts.values() for s in (st, st | at_nominal)}
-    return sorted((_recalibrated(family, calib, s, scales, stop, hold=free) for s in tried.values()),
+    return sorted((_recalibrated(family, calib, s, scales, stop, hold=hold) for s in tried.values()),
                   key=lambda f: f.rss)
 
 
