@@ -8,6 +8,7 @@ sample has arrived; the engine loop never waits on a client.
 
 from __future__ import annotations
 
+import concurrent.futures
 import logging
 import math
 import threading
@@ -28,6 +29,7 @@ WINDOW_S = 10.0
 # per series and push. The panel's charts are ≈ 300 px wide; 1000 points made every viewer
 # receive 2.4 MB/s (20 viewers: 54 MB/s through the server's event loop).
 MAX_POINTS = 400
+PUBLISH_TIMEOUT_S = 5.0  # a push not done on viser's loop by then is counted as failed
 LOG_EVERY = 1000  # a failure already logged is logged again at every this many failures
 HANDLE_STEP_RAD = 1e-3  # the 3-D handle is re-posed (and every viewer re-renders) only on a larger turn
 ARC_RADIUS_M = 0.11  # the range of motion is drawn just outside the handle's 9 cm half-length
@@ -264,8 +266,22 @@ class LivePlots:
         failure is logged once with its traceback, then every :data:`LOG_EVERY` th failure,
         so one that repeats 25 times a second neither floods the log nor hides in it.
         """
+        # on viser's own event loop: a handle's update pulses an asyncio.Event there, and from this
+        # thread that pulse raced the loop ("deque mutated during iteration" in Event.set, fresh-clone
+        # CI of ed71e5c). The event was then left set with its waiter never woken, and that page's
+        # sender waited for good: a page whose charts stopped moving while the run went on
+        done: concurrent.futures.Future[None] = concurrent.futures.Future()
+
+        def publish_on_loop() -> None:
+            try:
+                self.publish()
+                done.set_result(None)
+            except Exception as e:
+                done.set_exception(e)
+
         try:
-            self.publish()
+            self.server.get_event_loop().call_soon_threadsafe(publish_on_loop)
+            done.result(timeout=PUBLISH_TIMEOUT_S)
         except Exception as e:
             self.errors += 1
             what = f"{type(e).__name__}: {e}"[:300]
