@@ -116,11 +116,11 @@ class Param:
         hi: Upper bound.
         unit: Unit.
         log: Fit in log space (spans decades; needs ``lo > 0``).
-        off: For an effect parameter, the value at which the effect (nearly)
-            vanishes, so that a fit started there is never worse than the
-            model without it (``None``: ``x0``). Where it only nearly vanishes
-            that promise is as good as the "nearly" (docs/diagnosis-record.md, "Where
-            'off' is not the baseline").
+        off: For an effect parameter, the value at which the effect vanishes,
+            so that a fit started there is never worse than the model without
+            it (``None``: ``x0``). Where the effect's physics only nearly
+            vanishes there, the family leaves it out of its model at that value
+            (docs/diagnosis-record.md, "Where 'off' is not the baseline").
     """
 
     name: str

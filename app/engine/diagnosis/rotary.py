@@ -62,7 +62,7 @@ from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 from scipy.signal import butter, fftconvolve, filtfilt
 
 from app.engine.constants import BAR, P_ATM, P_ATM_BAR
-from app.engine.diagnosis.core import Param, white_noise_sd
+from app.engine.diagnosis.core import Param, switched_off, white_noise_sd
 from app.engine.diagnosis.families import WORKING_PRESSURE_BAR
 from app.engine.diagnosis.logs import Experiment, on_uniform_grid, speed_of, unscored_near_fills
 from app.engine.params import EFFECT_NAMES, HumanParams, PlantParams, conductance_si
@@ -935,8 +935,21 @@ class RotaryFamily:
         return (x.get("gain_a", 1.0), x.get("gain_b", 1.0), x["sensor_bias.p_a_bar"] if bias else 0.0,
                 x["sensor_bias.p_b_bar"] if bias else 0.0)
 
+    def _pneumatic(self, x: dict[str, float], effects: tuple[str, ...]) -> tuple[str, ...]:
+        """The pneumatic effects of ``effects`` that ``x`` has switched on.
+
+        One whose every parameter sits at its declared "off" value is left out of
+        the replay, so that a fit started there is the baseline itself. At their
+        bounds a tube (5 cm of 12 mm) and a wall's exchange (h·A = 20 W/K, which
+        relaxes a small chamber's gas in ≈ 8 ms) are still there: on a rig written
+        apart from ours logged at 1 kHz, the heat exchange's "off" cost 1.18 × the
+        baseline, and its fit ended above the model without it (GC −0.72;
+        docs/diagnosis-record.md, "Where 'off' is not the baseline").
+        """
+        return tuple(e for e in effects if e in _PNEUMATIC_EFFECTS and not switched_off(self.effect(e), x))
+
     def _key(self, x: dict[str, float], effects: tuple[str, ...]) -> tuple[Any, ...]:
-        peff = tuple(e for e in effects if e in _PNEUMATIC_EFFECTS)
+        peff = self._pneumatic(x, effects)
         # the sensors set where the replay starts (the chambers' first pressures are what they read)
         return (peff, *(round(x[n], 12) for n in _PNEUMATIC_BASE),
                 *(round(x.get(n, v), 12) for n, v in FORM_NOMINAL.items()),
@@ -944,7 +957,7 @@ class RotaryFamily:
                 *(round(v, 12) for kk, v in sorted(x.items()) if kk.split(".")[0] in peff))
 
     def _replay(self, prep: RotaryPrep, x: dict[str, float], effects: tuple[str, ...]) -> np.ndarray:
-        peff = tuple(e for e in effects if e in _PNEUMATIC_EFFECTS)
+        peff = self._pneumatic(x, effects)
         k = self.kernel_for(x, peff, prep.ps0_bar, prep.p_atm_bar)
         x0 = np.zeros(pl.NX)
         x0[pl.I_POS] = prep.theta[0]
