@@ -1019,6 +1019,55 @@ def test_an_effect_its_fit_pins_on_its_bounds_is_not_significant(offset: float, 
         assert "every parameter on a bound of its range (c 0.1 -, its upper)" in c["not_significant_because"][0]
 
 
+class _LineJump(_Line):
+    """y = a·x + s(k)·sin(t), where the effect's size s(k) = 1 + 3·ln(k/2)² is far from 0 at its "off"
+    bound k = 0.01 (as a 5 cm tube of 12 mm still acts on the rig): the family leaves it out there."""
+
+    candidates: tuple[str, ...] = ("tube_dynamics",)
+
+    def effect(self, name: str) -> list[Param]:
+        return [Param("tube_dynamics.k", 1.0, 0.01, 10.0, "-", log=True, off=0.01)]
+
+    def drops_at_off(self, effect: str) -> bool:
+        return True
+
+    def predict(self, p: Experiment, x: dict[str, float], effects: tuple[str, ...]) -> dict[str, np.ndarray]:
+        y = x["a"] * p.inputs["x"]
+        if "tube_dynamics" in effects and not core.switched_off(self.effect("tube_dynamics"), x):
+            y = y + (1.0 + 3.0 * math.log(x["tube_dynamics.k"] / 2.0) ** 2) * np.sin(p.t)
+        return {"y": y}
+
+
+class _LineJumpDescended(_LineJump):
+    def drops_at_off(self, effect: str) -> bool:
+        return False
+
+
+def test_an_effect_left_out_at_its_off_values_is_not_descended_from_there() -> None:
+    # At "off" the cost is the baseline's, lower than at the effect's typical size (k = 1), so "off"
+    # is the cheapest start; but a descent from there sees only the jump to k = 0.0101 and stays.
+    # From k = 1 the descent reaches the rig's k = 2
+    rng = np.random.default_rng(7)
+    t = np.linspace(0.0, 12.0, 600)
+
+    def exp(name: str) -> Experiment:
+        return Experiment(name, t, {"x": t / 12.0}, {"y": t / 12.0 + np.sin(t) + 0.01 * rng.standard_normal(t.size)},
+                          {})
+
+    calib, held = [exp("a"), exp("b")], [exp("c"), exp("d")]
+    r = core.diagnose(_LineJump(), calib, held, blocks=4)
+    c = r["ranking"][0]
+    assert c["params"]["tube_dynamics.k"] == pytest.approx(2.0, rel=0.02)
+    assert c["gap_closure"] > 0.95 and c["significant"], c
+    stuck = core.diagnose(_LineJumpDescended(), calib, held, blocks=4)["ranking"][0]
+    assert stuck["switched_off"] and not stuck["significant"]  # what a descent from "off" gives
+    # and where the effect is not there, the fit falls back on "off": never above the model without it
+    flat = [Experiment(e.name, t, e.inputs, {"y": t / 12.0 + 0.01 * rng.standard_normal(t.size)}, {})
+            for e in (*calib, *held)]
+    none = core.diagnose(_LineJump(), flat[:2], flat[2:], blocks=4)["ranking"][0]
+    assert none["switched_off"] and not none["significant"] and none["delta_bic"] >= -20.0
+
+
 class _LineLag(_Line):
     """y = a·x + c·(1 − exp(−t/τ)): an effect that is a step of height c through a lag τ, whose
     static part (``static_part``: the lag taken out) is the step alone."""

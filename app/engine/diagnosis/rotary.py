@@ -948,6 +948,13 @@ class RotaryFamily:
         """
         return tuple(e for e in effects if e in _PNEUMATIC_EFFECTS and not switched_off(self.effect(e), x))
 
+    def drops_at_off(self, effect: str) -> bool:
+        """Whether the replay leaves ``effect`` out at its "off" values (see :meth:`_pneumatic`).
+
+        There its cost jumps, so a fit does not descend from that start (``core.fit``'s ``fallback``).
+        """
+        return effect in _PNEUMATIC_EFFECTS and all(p.off is not None for p in self.effect(effect))
+
     def _key(self, x: dict[str, float], effects: tuple[str, ...]) -> tuple[Any, ...]:
         peff = self._pneumatic(x, effects)
         # the sensors set where the replay starts (the chambers' first pressures are what they read)
