@@ -64,7 +64,10 @@ dynamics out and their description (see :data:`STATIC_SHARE`),
 ``linear_start(preps, params, effects)`` giving, instead of the grid, a start for a
 candidate's descent with the parameters that enter the predictions (nearly)
 linearly at their least-squares values (or ``None``: the grid; with ``rebase``,
-taken again at the baseline grid's best), and
+taken again at the baseline grid's best),
+``drops_at_off(effect)``, true where the family leaves the effect out of its
+model at its ``off`` values (the cost jumps there, so that point is a fallback
+of the candidate's descent, not a start: :func:`fit`), and
 ``nominal_scales`` naming baseline parameters that scale a nominal value
 (the report flags one the recalibration moved past :data:`FAR_FACTOR`:
 :func:`recalibration`), ``meaning`` (what each baseline parameter is, for
