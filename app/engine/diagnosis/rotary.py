@@ -953,7 +953,9 @@ class RotaryFamily:
 
         There its cost jumps, so a fit does not descend from that start (``core.fit``'s ``fallback``).
         """
-        return effect in _PNEUMATIC_EFFECTS and all(p.off is not None for p in self.effect(effect))
+        specs = self.effect(effect)
+        # the rule _pneumatic applies, at the "off" point itself (False where a parameter has no "off")
+        return effect in _PNEUMATIC_EFFECTS and switched_off(specs, {p.name: p.off for p in specs if p.off is not None})
 
     def _key(self, x: dict[str, float], effects: tuple[str, ...]) -> tuple[Any, ...]:
         peff = self._pneumatic(x, effects)

@@ -699,11 +699,9 @@ def step_pneumatics(x: np.ndarray, cmd: np.ndarray, k: Any, work: np.ndarray, ja
             dmc = dm[n_c]
             enth = dmc * CP_AIR * (k.t_atm if dmc > 0.0 else tc)
             t_adiabatic = (u_old + enth - p[n_c] * dvol) / (m_new * CV_AIR)
-            # the wall's exchange relaxes the gas to the wall's temperature over the substep exactly
-            # (dT/dt = -h·A/(m·c_v)·(T - T_wall)), not by an explicit Euler step: that stays stable for
-            # any h·A and tends to the isothermal model as h·A grows (at h·A = 20 W/K a small chamber's
-            # gas relaxes in ≈ 8 ms, which at a 1 ms substep an Euler step already overshoots little,
-            # but a fit needs the range to reach isothermal, where the effect vanishes)
+            # the wall's exchange, dT/dt = -h·A/(m·c_v)·(T - T_wall), solved exactly over the substep:
+            # an explicit Euler step overshot the wall's temperature where h·A·h > 2·m·c_v, and this
+            # stays stable for any h·A and tends to the isothermal model as h·A grows
             relax = math.exp(-k.heat_ha * h / (m_new * CV_AIR))
             tc_new = k.t_atm + (t_adiabatic - k.t_atm) * relax
             x[it] = min(max(tc_new, 150.0), 600.0)
