@@ -444,6 +444,8 @@ def test_a_researcher_tunes_a_pressure_loop_and_exercises_with_the_gains(station
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.goto(base)
+    # read the state only once the page has polled it: before, it shows "…" and Connect was skipped (seen in CI)
+    expect(page.locator("#state")).to_have_text(re.compile("^(disconnected|idle)$"), timeout=10_000)
     if page.locator("#state").inner_text() == "disconnected":
         page.click("[data-action=connect]")
     expect(page.locator("#state")).to_have_text("idle", timeout=60000)
