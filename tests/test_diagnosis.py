@@ -1252,7 +1252,7 @@ def test_the_form_recalibration_carries_two_forms_so_a_near_tie_does_not_decide_
                 (0.754, "dead_zone"): [fitted(1.69, closure=1.0, band=0.019, dead_zone=0.966),
                                        fitted(3.84, closure=0.75, band=0.098, dead_zone=0.504)]}
 
-    def form_descents(_family: Any, _calib: Any, base: Fit, group: list[Param], *_: Any) -> list[Fit]:
+    def form_descents(_family: Any, _calib: Any, base: Fit, group: list[Param], *_: Any, **__: Any) -> list[Fit]:
         return descents.get((round(base.params["closure"], 3), group[0].name), [])
 
     monkeypatch.setattr(core, "_recalibrated", lambda *a, **k: nominal)
@@ -1268,3 +1268,66 @@ def test_the_form_recalibration_carries_two_forms_so_a_near_tie_does_not_decide_
                                  [*centre, *regulator])
     assert core._forms_apart(descents[0.0, "closure"][0].params, descents[0.0, "closure"][1].params,
                              [*centre, *regulator])
+
+
+def test_the_form_recalibration_descends_from_each_level_of_a_group_a_later_group_completes(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a rig written apart from ours logged at 100 Hz (with BLAS's SkylakeX kernels), the valve's centre
+    descended to 0.53 closed from its grid's best (0.5 closed) and from there no regulator form gained what
+    matters; the grid's point with the centre shut, descended, ended at 0.98 closed, from where the regulator's
+    form paid (docs/diagnosis-record.md, "Each level of the valve's centre descended"). The search is replayed
+    here on those costs (×10⁶): offered the grid's other levels, it ends at the rig's pair of forms; with none
+    (the search before), at 0.53 closed and the nominal regulator. The last group's levels are never searched:
+    no group's form completes it."""
+    from app.engine.diagnosis.core import Fit, Param
+
+    centre = (Param("closure", 0.0, 0.0, 1.0), Param("band", 0.2, 0.0, 0.4))
+    regulator = (Param("dead_zone", 0.0, 0.0, 1.0),)
+
+    class Family:
+        form_grids = (centre, regulator)
+        base_grids = ((Param("c", 1.0, 0.3, 3.0, log=True),),)
+
+        def baseline(self) -> list[Param]:
+            return [*self.base_grids[0], *centre, *regulator]
+
+        def measured(self, _prep: Any) -> dict[str, Any]:
+            return {}
+
+    def fitted(rss: float, **form: float) -> Fit:
+        return Fit((), {"c": 1.0, "closure": 0.0, "band": 0.2, "dead_zone": 0.0} | form, {}, [], np.eye(1), 1.0, rss,
+                   100, 1)
+
+    nominal = fitted(8.31)
+    # each start's descent, by (closure, dead zone) of the start
+    descents = {(0.0, 0.0): nominal, (0.5, 0.0): fitted(1.33, closure=0.532, band=0.0),
+                (1.0, 0.0): fitted(1.02, closure=0.977, band=0.005),
+                (0.532, 0.5): fitted(0.82, closure=0.662, band=0.015, dead_zone=0.399),
+                (0.977, 1.0): fitted(0.18, closure=1.0, band=0.022, dead_zone=0.996)}
+    # the centre's coarse grid from the nominal form (0 closed costs more than the nominal form's fit)
+    centre_grid = {(0.0, 0.0): 9.0, (0.5, 0.0): 2.0, (1.0, 0.0): 2.2, (0.5, 0.2): 3.0, (1.0, 0.2): 9.5}
+    offered: list[bool] = []
+
+    def recalibrated(_f: Any, _c: Any, start: dict[str, float], *_: Any, **__: Any) -> Fit:
+        return descents[round(start["closure"], 3), round(start["dead_zone"], 3)]
+
+    def grid_best(_f: Any, _c: Any, _e: Any, ref: dict[str, float], group: list[Param], *_: Any,
+                  **__: Any) -> tuple[dict[str, float], float]:
+        if group[0].name == "closure":
+            return ref | {"closure": 0.5, "band": 0.0}, 2.0
+        return ref | {"dead_zone": 1.0 if ref["closure"] > 0.9 else 0.5}, 0.5
+
+    def grid_costs(_f: Any, _p: Any, _m: Any, _e: Any, ref: dict[str, float], new: list[Param], *_: Any
+                   ) -> list[tuple[dict[str, float], float]]:
+        assert new[0].name == "closure", "the last group's levels were searched"
+        return [(ref | {"closure": c, "band": b}, cost) for (c, b), cost in centre_grid.items()] if offered[-1] else []
+
+    monkeypatch.setattr(core, "_recalibrated", recalibrated)
+    monkeypatch.setattr(core, "_grid_best", grid_best)
+    monkeypatch.setattr(core, "_grid_costs", grid_costs)
+    # what matters on the rig: the regulator's form from 0.53 closed gains too little (1.33 → 0.82)
+    monkeypatch.setattr(core, "_relevant_gain", lambda _f, _c, a, b: a.rss - b.rss > 0.6)
+    for offer, ends in ((True, (1.0, 0.996)), (False, (0.532, 0.0))):
+        offered.append(offer)
+        nom, formed = core.recalibrate_forms(Family(), [], scales={"p": 1.0})  # type: ignore[arg-type]
+        assert nom is nominal and (formed.params["closure"], formed.params["dead_zone"]) == ends, offer

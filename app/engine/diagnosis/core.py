@@ -48,8 +48,8 @@ other parameters: :func:`recalibrate`; ``base_grids``, several such groups
 gridded one after the other, ``base_grid_levels`` values per axis for each,
 default 3) and, over those that ``rebase`` names, of a
 candidate's fit after its own grid, ``form_grids`` (groups of ranges of baseline
-parameters of the model's form, e.g. one valve's) recalibrated one group after the
-other beside the nominal form (:func:`recalibrate_forms`) and searched again in a
+parameters of the model's form, e.g. one valve's, the form's switch first) recalibrated
+one group after the other beside the nominal form (:func:`recalibrate_forms`) and searched again in a
 candidate's fit where the recalibration moved them (that fit's grid then runs both
 from the nominal form and beside the reference's),
 ``frozen(effects)`` naming parameters the candidate being added cannot trade with
@@ -992,26 +992,17 @@ def _grid_best(family: Family, preps: list[Any], effects: tuple[str, ...], ref: 
     """
     per = levels or {1: points, 2: max(3, (points + 1) // 2)}.get(len(new), 3)
     meas = [family.measured(p) for p in preps]
-    prefetch = getattr(family, "prefetch", None)
 
     def best_of(axes: list[np.ndarray]) -> tuple[dict[str, float], float]:
-        cands = [ref | {p.name: float(v) for p, v in zip(new, combo, strict=True)}
-                 for combo in itertools.product(*axes)]
-        # on a tie the reference's own point wins (a form whose parameter has no effect where
-        # another puts it, such as a dead band at a centre that leaks, is no other form)
-        cands.sort(key=lambda v: v != ref)
-        if prefetch is not None:
-            prefetch(preps, cands, effects)
-        best, best_cost = cands[0], math.inf
-        for v in cands:
-            r = _residuals(family, preps, meas, v, effects, scales)
-            cost = float(r @ r)
+        costs = _grid_costs(family, preps, meas, effects, ref, new, axes, scales)
+        best, best_cost = costs[0][0], math.inf
+        for v, cost in costs:
             if cost < best_cost:
                 best, best_cost = v, cost
         return best, best_cost
 
     def axis(p: Param, lo: float, hi: float) -> np.ndarray:
-        return np.exp(np.linspace(math.log(lo), math.log(hi), per)) if p.log else np.linspace(lo, hi, per)
+        return _axis(p, lo, hi, per)
 
     best, best_cost = best_of([axis(p, p.lo, p.hi) for p in new])
     steps = {p.name: ((math.log(p.hi) - math.log(p.lo)) if p.log else (p.hi - p.lo)) / (per - 1) for p in new}
@@ -1028,6 +1019,29 @@ def _grid_best(family: Family, preps: list[Any], effects: tuple[str, ...], ref: 
         if cand_cost <= best_cost:
             best, best_cost = cand, cand_cost
     return best, best_cost
+
+
+def _axis(p: Param, lo: float, hi: float, per: int) -> np.ndarray:
+    """``per`` values of ``p`` from ``lo`` to ``hi``, evenly spaced (in log space for a log parameter)."""
+    return np.exp(np.linspace(math.log(lo), math.log(hi), per)) if p.log else np.linspace(lo, hi, per)
+
+
+def _grid_costs(family: Family, preps: list[Any], meas: list[dict[str, np.ndarray]], effects: tuple[str, ...],
+                ref: dict[str, float], new: list[Param], axes: list[np.ndarray],
+                scales: dict[str, float]) -> list[tuple[dict[str, float], float]]:
+    """Every point of the grid ``axes`` over ``new`` (the rest at ``ref``) with its cost, ``ref``'s own point first."""
+    cands = [ref | {p.name: float(v) for p, v in zip(new, combo, strict=True)} for combo in itertools.product(*axes)]
+    # on a tie the reference's own point wins (a form whose parameter has no effect where
+    # another puts it, such as a dead band at a centre that leaks, is no other form)
+    cands.sort(key=lambda v: v != ref)
+    prefetch = getattr(family, "prefetch", None)
+    if prefetch is not None:
+        prefetch(preps, cands, effects)
+    out = []
+    for v in cands:
+        r = _residuals(family, preps, meas, v, effects, scales)
+        out.append((v, float(r @ r)))
+    return out
 
 
 def _weigh(base_sc: Scores, win: Candidate, c: Candidate, norm: _Norm) -> tuple[float, float, bool]:
@@ -1292,9 +1306,10 @@ def recalibrate_forms(family: Family, calib: list[Any], scales: dict[str, float]
     With the family's form parameters (``form_grids``) held at nominal; then,
     one group after the other, from that group's grid's best, with it free,
     kept only where that lowers some channel's calibration RMS error by more
-    than the family's relevance. The :data:`FORM_BEAM` cheapest fits of
-    distinct forms so far are each carried to the next group, and the
-    cheapest at the end is the one returned.
+    than the family's relevance. A group another group follows is descended
+    from each level of its first parameter too (:func:`_form_descents`). The
+    :data:`FORM_BEAM` cheapest fits of distinct forms so far are each carried
+    to the next group, and the cheapest at the end is the one returned.
 
     Args:
         family: The rig family.
@@ -1333,13 +1348,20 @@ def recalibrate_forms(family: Family, calib: list[Any], scales: dict[str, float]
         # descended to 0.63 closed at 0.985 × the cost of 0.75 closed, and from there no regulator
         # form gained what matters; from 0.75 the regulator's took the cost to 0.42 × (the
         # 200 Hz logs of the same rig had chosen 0.75 and both forms). So the cheapest fits of
-        # distinct forms are each carried on (docs/diagnosis-record.md, "Two forms carried on")
+        # distinct forms are each carried on (docs/diagnosis-record.md, "Two forms carried on").
+        # Nor need the group's grid's best be the level the next group's form completes: at
+        # 100 Hz every descent of the centre from there ended half closed, where no regulator form
+        # paid; the grid's point with the centre shut, descended, ended 0.98 closed, and from there
+        # the regulator's form took the cost to 0.17 ×. So a group another group follows is also
+        # descended from its grid's cheapest point at each other level of its first parameter
+        # (the family puts the form's switch first; "Each level of the valve's centre descended")
         raise_if_stopped(stop)
         names = [p.name for p in group]
         carried: list[tuple[Fit, list[str]]] = []
         for base, held in chains:
             free = [n for n in held if n not in names]
-            kept = [d for d in _form_descents(family, calib, base, group, free, at_nominal, nominal, scales, stop)
+            kept = [d for d in _form_descents(family, calib, base, group, free, at_nominal, nominal, scales, stop,
+                                              levels=group is not groups[-1])
                     if d.rss < base.rss and _relevant_gain(family, calib, base, d)]
             carried += [(d, free) for d in kept] or [(base, held)]
         chains = []
@@ -1353,9 +1375,14 @@ def recalibrate_forms(family: Family, calib: list[Any], scales: dict[str, float]
 
 def _form_descents(family: Family, calib: list[Any], base: Fit, group: list[Param], hold: list[str],
                    at_nominal: dict[str, float], nominal: dict[str, float], scales: dict[str, float],
-                   stop: threading.Event | None) -> list[Fit]:
+                   stop: threading.Event | None, levels: bool = False) -> list[Fit]:
     """The fits with ``group`` free descended from its grid's best points (none where no grid point is cheaper),
     the form parameters in ``hold`` held at nominal.
+
+    With ``levels`` (a group another group's form follows), also from the
+    cheapest grid point at each other value of the group's first parameter,
+    where that is cheaper than ``base``: the form of a later group can make
+    another level the right one (see :func:`recalibrate_forms`).
 
     The form's grid runs from the fit so far (the gains and friction it fitted): from the
     nominal values, a PRV regulator of another form was gridded with the pressure gains at
@@ -1374,6 +1401,17 @@ def _form_descents(family: Family, calib: list[Any], base: Fit, group: list[Para
     again, _ = _grid_best(family, calib, (), base.params | at_nominal, group, 3, scales)
     if any(again[n] != nominal[n] for n in names):
         starts.setdefault(tuple(again[n] for n in names), again)
+    if levels:
+        lead = group[0]
+        per_level: dict[float, tuple[dict[str, float], float]] = {}
+        axes = [_axis(p, p.lo, p.hi, 3) for p in group]
+        for v, c in _grid_costs(family, calib, [family.measured(p) for p in calib], (), base.params, group, axes,
+                                scales):
+            if c < base.rss and c < per_level.get(v[lead.name], (v, math.inf))[1]:
+                per_level[v[lead.name]] = (v, c)
+        for v, _ in per_level.values():
+            if all(_forms_apart(v, s, [lead]) for s in starts.values()):
+                starts.setdefault(tuple(v[n] for n in names), v)
     # each from there and with the gridded parameters at nominal
     tried = {tuple(sorted(s.items())): s for st in starts.values() for s in (st, st | at_nominal)}
     return sorted((_recalibrated(family, calib, s, scales, stop, hold=hold) for s in tried.values()),

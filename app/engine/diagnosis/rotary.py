@@ -483,6 +483,7 @@ class RotaryFamily:
     # no null zone: on an effect-free rig written apart from ours (bench/independent_rig.py, a linear
     # opening past 0.2 V) the thesis's centre had left E at 0.044, 18 × the floor; that rig's own form
     # gives 0.013. Then the PRVs' regulator (see prv_regulator), around the nominal's
+    # (each group's form switch first: the search descends from each of its levels, core._form_descents)
     form_grids: tuple[tuple[Param, ...], ...] = (
         (Param("dcv_centre_closure", DCV_FORM_NOMINAL["dcv_centre_closure"], 0.0, 1.0, "-"),
          Param("dcv_dead_band_v", DCV_FORM_NOMINAL["dcv_dead_band_v"], 0.0, 0.4, "V")),
