@@ -13,6 +13,7 @@ import pytest
 
 from app.engine.diagnosis import core
 from app.engine.diagnosis.core import (
+    Fit,
     Param,
     _grid_start,
     channel_scales,
@@ -1222,27 +1223,34 @@ def test_a_better_baseline_the_calibration_logs_do_not_prefer_is_said_for_what_i
         "the baseline was recalibrated from there and every candidate judged against that")
 
 
+class _FormFamily:
+    """A family of two form groups (a valve's centre, then a regulator) whose search the form tests replay."""
+
+    form_grids = ((Param("closure", 0.0, 0.0, 1.0), Param("band", 0.2, 0.0, 0.4)),
+                  (Param("dead_zone", 0.0, 0.0, 1.0),))
+    base_grids = ((Param("c", 1.0, 0.3, 3.0, log=True),),)
+
+    def baseline(self) -> list[Param]:
+        return [*self.base_grids[0], *self.form_grids[0], *self.form_grids[1]]
+
+    def measured(self, _prep: Any) -> dict[str, Any]:
+        return {}
+
+
+def _form_fit(rss: float, **form: float) -> Fit:
+    """A fit of :class:`_FormFamily` at calibration cost ``rss`` with ``form`` (the rest nominal)."""
+    return Fit((), {"c": 1.0, "closure": 0.0, "band": 0.2, "dead_zone": 0.0} | form, {}, [], np.eye(1), 1.0, rss,
+               100, 1)
+
+
 def test_the_form_recalibration_carries_two_forms_so_a_near_tie_does_not_decide_the_next_groups(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """On a rig written apart from ours logged at 1 kHz, the valve's centre descended to 0.63 closed at 0.985 ×
     the cost of 0.75 closed, and from 0.63 no regulator form gained what matters, where from 0.75 it took the
     cost to 0.42 × (docs/diagnosis-record.md, "Two forms carried on"). The search is replayed here on those
     costs: with one form carried it ends at 0.63 and the nominal regulator; with two, at the regulator's form."""
-    from app.engine.diagnosis.core import Fit, Param
-
-    centre = (Param("closure", 0.0, 0.0, 1.0), Param("band", 0.2, 0.0, 0.4))
-    regulator = (Param("dead_zone", 0.0, 0.0, 1.0),)
-
-    class Family:
-        form_grids = (centre, regulator)
-        base_grids = ((Param("c", 1.0, 0.3, 3.0, log=True),),)
-
-        def baseline(self) -> list[Param]:
-            return [*self.base_grids[0], *centre, *regulator]
-
-    def fitted(rss: float, **form: float) -> Fit:
-        return Fit((), {"c": 1.0, "closure": 0.0, "band": 0.2, "dead_zone": 0.0} | form, {}, [], np.eye(1), 1.0, rss,
-                   100, 1)
+    centre, regulator = _FormFamily.form_grids
+    fitted = _form_fit
 
     nominal = fitted(23.5)
     # what each group's grids and descents give from each fit (the rig's costs, ×10⁶)
@@ -1261,7 +1269,7 @@ def test_the_form_recalibration_carries_two_forms_so_a_near_tie_does_not_decide_
     monkeypatch.setattr(core, "_relevant_gain", lambda _f, _c, a, b: a.rss - b.rss > 1.0)
     for beam, ends in ((1, (0.634, 0.0)), (2, (1.0, 0.966))):
         monkeypatch.setattr(core, "FORM_BEAM", beam)
-        nom, formed = core.recalibrate_forms(Family(), [], scales={"p": 1.0})  # type: ignore[arg-type]
+        nom, formed = core.recalibrate_forms(_FormFamily(), [], scales={"p": 1.0})  # type: ignore[arg-type]
         assert nom is nominal and (formed.params["closure"], formed.params["dead_zone"]) == ends, beam
     # two fits of one form (0.754 and 0.75 closed, 0.098 and 0.099 V) are one: the second carried is another form
     assert not core._forms_apart(descents[0.0, "closure"][1].params, descents[0.0, "closure"][2].params,
@@ -1279,24 +1287,7 @@ def test_the_form_recalibration_descends_from_each_level_of_a_group_a_later_grou
     here on those costs (×10⁶): offered the grid's other levels, it ends at the rig's pair of forms; with none
     (the search before), at 0.53 closed and the nominal regulator. The last group's levels are never searched:
     no group's form completes it."""
-    from app.engine.diagnosis.core import Fit, Param
-
-    centre = (Param("closure", 0.0, 0.0, 1.0), Param("band", 0.2, 0.0, 0.4))
-    regulator = (Param("dead_zone", 0.0, 0.0, 1.0),)
-
-    class Family:
-        form_grids = (centre, regulator)
-        base_grids = ((Param("c", 1.0, 0.3, 3.0, log=True),),)
-
-        def baseline(self) -> list[Param]:
-            return [*self.base_grids[0], *centre, *regulator]
-
-        def measured(self, _prep: Any) -> dict[str, Any]:
-            return {}
-
-    def fitted(rss: float, **form: float) -> Fit:
-        return Fit((), {"c": 1.0, "closure": 0.0, "band": 0.2, "dead_zone": 0.0} | form, {}, [], np.eye(1), 1.0, rss,
-                   100, 1)
+    fitted = _form_fit
 
     nominal = fitted(8.31)
     # each start's descent, by (closure, dead zone) of the start
@@ -1329,5 +1320,5 @@ def test_the_form_recalibration_descends_from_each_level_of_a_group_a_later_grou
     monkeypatch.setattr(core, "_relevant_gain", lambda _f, _c, a, b: a.rss - b.rss > 0.6)
     for offer, ends in ((True, (1.0, 0.996)), (False, (0.532, 0.0))):
         offered.append(offer)
-        nom, formed = core.recalibrate_forms(Family(), [], scales={"p": 1.0})  # type: ignore[arg-type]
+        nom, formed = core.recalibrate_forms(_FormFamily(), [], scales={"p": 1.0})  # type: ignore[arg-type]
         assert nom is nominal and (formed.params["closure"], formed.params["dead_zone"]) == ends, offer
