@@ -455,8 +455,11 @@ def _modbus_plant(args: argparse.Namespace) -> int:
     print(f"cwrr modbus-plant: the simulated rotary rig on modbus://{server.host}:{server.port} "
           f"(register layout: app/engine/hardware/modbus.py); Ctrl-C stops", flush=True)
     try:
+        # short sleeps: a Ctrl-C the kernel hands to one of the server's threads only sets Python's
+        # flag, which the main thread reads when it next wakes (once, in a loaded parallel test run,
+        # the plant did not stop within 20 s of its SIGINT; not reproduced since)
         while True:
-            time.sleep(3600)
+            time.sleep(0.5)
     except KeyboardInterrupt:
         pass
     finally:

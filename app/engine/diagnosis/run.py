@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -69,7 +70,8 @@ def split_last_third(exps: list[Experiment]) -> tuple[list[Experiment], list[Exp
 
 def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] | None = None,
                  stop: threading.Event | None = None,
-                 bounds: dict[str, tuple[float, float]] | None = None, traces: bool = False) -> dict[str, Any]:
+                 bounds: dict[str, tuple[float, float]] | None = None, traces: bool = False,
+                 candidates: Sequence[str] | None = None) -> dict[str, Any]:
     """The report for the logs in ``logdir``.
 
     Args:
@@ -85,6 +87,8 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
             ``baseline.bounds``.
         traces: Add each held-out log's measured and predicted channels over
             time (``traces``, :func:`~app.engine.diagnosis.core.traces`).
+        candidates: The effects to try (default: all the family's); the
+            baseline's recalibration is the same either way.
 
     Raises:
         ValueError: ``bounds`` for an adapter's logs, or a bound the family
@@ -104,14 +108,15 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     if kind == "emps":
         exps = [read_emps(p) for p in sorted(d.glob("*.mat"))]
         calib, held = _split(exps, held_out)
-        return diagnose(DriveFamily(), calib, held, protocol=PROTOCOL, stop=stop, with_traces=traces) | {
+        return diagnose(DriveFamily(), calib, held, candidates, protocol=PROTOCOL, stop=stop,
+                        with_traces=traces) | {
             "adapter": "emps"}
     if kind == "chamber_leak":
         reports = {}
         for p in sorted(d.glob("*.csv")):
             a, b = split_time(read_chamber_leak(p))
             fam = ChamberFamily()
-            rep = diagnose(fam, [a], [b], protocol=PROTOCOL, stop=stop, with_traces=traces)
+            rep = diagnose(fam, [a], [b], candidates, protocol=PROTOCOL, stop=stop, with_traces=traces)
             reports[p.stem] = rep | {"leak_on_the_rig": fam.leak_on_the_rig(rep)}
         return {"adapter": "chamber_leak", "reports": reports}
     family = RotaryFamily(bounds=bounds)  # refuses a bad bound before the logs are read
@@ -132,7 +137,7 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
         family.channels = tuple(c for c in family.channels if c not in unmeasured)
     atmosphere = vented_atmosphere(exps)  # read in the format's wiring, which read_conventions restored
     calib, held, why = _split_station(exps, held_out)
-    report = diagnose(family, calib, held, protocol=PROTOCOL, stop=stop, with_traces=traces)
+    report = diagnose(family, calib, held, candidates, protocol=PROTOCOL, stop=stop, with_traces=traces)
     report["experiments"]["unmeasured_channels"] = unmeasured
     report["experiments"]["atmosphere"] = atmosphere
     report["experiments"] |= conv.report()
