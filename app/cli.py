@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import math
 import os
 import signal
@@ -451,6 +452,9 @@ def _modbus_plant(args: argparse.Namespace) -> int:
     from app.engine.hardware.modbus import serve_simulated_plant
 
     cfg = load_config(args.hardware) if args.hardware else HardwareConfig(backend="modbus")
+    # `kill -USR1 PID` prints every thread's stack to stderr: a plant that stops answering can be
+    # looked into without stopping it
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     server = serve_simulated_plant(cfg, host=args.host, port=args.port)
     print(f"cwrr modbus-plant: the simulated rotary rig on modbus://{server.host}:{server.port} "
           f"(register layout: app/engine/hardware/modbus.py); Ctrl-C stops", flush=True)
