@@ -61,7 +61,6 @@ def test_protocol_logs_are_in_the_station_format(tmp_path: Path) -> None:
     assert sorted(e.name for e in calib) == ["hold_closed-1", "prv_steps-1"]
 
 
-
 def test_a_diagnosis_asked_for_an_effect_the_family_lacks_names_the_ones_it_has(tmp_path: Path) -> None:
     """``diagnose_dir(candidates=...)`` tries the effects it is given; a name the rotary family has no
     add-on for is refused before anything is fitted, with the names it knows."""
@@ -70,6 +69,7 @@ def test_a_diagnosis_asked_for_an_effect_the_family_lacks_names_the_ones_it_has(
     run_protocol(PlantParams(), seed=1, repetitions=2, scale=0.3, kinds=["hold_closed"], outdir=tmp_path)
     with pytest.raises(ValueError, match=r"the rotary family has no candidate stiction; known: inertia, "):
         diagnose_dir(tmp_path, candidates=["vane_leakage", "stiction"])
+
 
 def test_logs_run_once_are_held_out_only_where_other_logs_excite_the_same(nominal_logs: list) -> None:
     """Without repetitions a third of the logs is still withheld whole, but never the only one with

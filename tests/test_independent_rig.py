@@ -123,7 +123,7 @@ def test_a_tube_behind_a_valve_of_another_form_is_fitted_beside_that_form(tmp_pa
     recovers the tube and gives the dead volume back (docs/diagnosis-record.md, "A tube beside a form").
 
     The protocol runs at half length (``--scale 0.5``): at full length the suite's longest test took
-    208 CPU-s against 142 s, on the fiftieth session's VM, and every check below held on both (the
+    208 CPU-s, at half 142, on the fiftieth session's VM, and every check below held on both (the
     tube's GC 0.74 at full length, 0.69 at half)."""
     from app.engine.diagnosis.run import diagnose_dir
     from bench import independent_rig as ir

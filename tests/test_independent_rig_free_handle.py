@@ -21,7 +21,8 @@ def test_a_free_handle_thrown_to_the_stops_does_not_bend_the_recalibration(tmp_p
     unscored near the stops, the baseline stays near the rig (docs/diagnosis-record.md).
 
     Pre-sliding is the one candidate tried: the recalibration, which this test is about, does not
-    depend on the candidates, and the other eight took 40 % of the test's time."""
+    depend on the candidates, and the other eight took over half the test's CPU time (180 CPU-s
+    in all against 81, on the fiftieth session's VM)."""
     from app.engine.diagnosis.run import diagnose_dir
     from bench import independent_rig as ir
 

@@ -108,9 +108,8 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     if kind == "emps":
         exps = [read_emps(p) for p in sorted(d.glob("*.mat"))]
         calib, held = _split(exps, held_out)
-        return diagnose(DriveFamily(), calib, held, candidates, protocol=PROTOCOL, stop=stop,
-                        with_traces=traces) | {
-            "adapter": "emps"}
+        rep = diagnose(DriveFamily(), calib, held, candidates, protocol=PROTOCOL, stop=stop, with_traces=traces)
+        return rep | {"adapter": "emps"}
     if kind == "chamber_leak":
         reports = {}
         for p in sorted(d.glob("*.csv")):
