@@ -1,7 +1,8 @@
 """The diagnosis on the independently written rig's free handle (``bench/independent_rig.py --free-handle``).
 
-A file of its own: its diagnosis and the tube's in ``test_independent_rig.py`` are the suite's two
-longest tests, and the parallel run hands out whole files (``./dev test``), so apart they run side by side."""
+A file of its own: the parallel run hands out whole files (``./dev test``), and beside the tube's
+diagnosis in ``test_independent_rig.py`` (the suite's longest test) this one would run after it on the
+same worker instead of on another."""
 
 from __future__ import annotations
 
