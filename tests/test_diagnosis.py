@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import threading
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -1322,3 +1323,26 @@ def test_the_form_recalibration_descends_from_each_level_of_a_group_a_later_grou
         offered.append(offer)
         nom, formed = core.recalibrate_forms(_FormFamily(), [], scales={"p": 1.0})  # type: ignore[arg-type]
         assert nom is nominal and (formed.params["closure"], formed.params["dead_zone"]) == ends, offer
+
+
+def test_independent_fits_run_side_by_side_and_come_back_in_their_order() -> None:
+    """The diagnosis fits independent candidates :data:`core.EVALUATIONS` at a time: two fits that
+    each wait for the other end only if they run at once; the results keep the items' order, and a
+    failing fit's error is raised, not lost."""
+    assert core.EVALUATIONS >= 2
+    both = threading.Barrier(2, timeout=30.0)
+
+    def square(i: int) -> int:
+        if i < 2:
+            both.wait()  # BrokenBarrierError after 30 s if the two never ran side by side
+        return i * i
+
+    assert core._each(square, list(range(7))) == [0, 1, 4, 9, 16, 25, 36]
+
+    def failing(i: int) -> int:
+        if i == 3:
+            raise ValueError("the fit of item 3 failed")
+        return i
+
+    with pytest.raises(ValueError, match="the fit of item 3 failed"):
+        core._each(failing, list(range(7)))

@@ -49,6 +49,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import threading
 from collections import OrderedDict
 from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
@@ -122,18 +123,25 @@ REPLAY_CACHE = 128  # replayed pressure sets kept per log (a descent revisits it
 TORQUE_CACHE = 64  # torque-balance predictions kept per log
 
 
+# the diagnosis evaluates candidates in several threads at once (core.EVALUATIONS): a hit moved to
+# the end while another thread evicts it would raise KeyError, so each look-up and store is one step
+_LRU_LOCK = threading.Lock()
+
+
 def _lru_get(cache: OrderedDict[tuple[Any, ...], np.ndarray], key: tuple[Any, ...]) -> np.ndarray | None:
-    hit = cache.get(key)
-    if hit is not None:
-        cache.move_to_end(key)
-    return hit
+    with _LRU_LOCK:
+        hit = cache.get(key)
+        if hit is not None:
+            cache.move_to_end(key)
+        return hit
 
 
 def _lru_put(cache: OrderedDict[tuple[Any, ...], np.ndarray], key: tuple[Any, ...], value: np.ndarray,
              size: int) -> None:
-    cache[key] = value
-    if len(cache) > size:
-        cache.popitem(last=False)
+    with _LRU_LOCK:
+        cache[key] = value
+        while len(cache) > size:
+            cache.popitem(last=False)
 
 
 def _stuck(theta: np.ndarray, w: int) -> np.ndarray:
