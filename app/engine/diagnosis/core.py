@@ -1657,6 +1657,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     while pool and len(selected) < MAX_EFFECTS:
         if selected:
             prev = tuple(s.effect for s in selected)
+
             def beside(c: Candidate, r: Fit = ref, r_sc: Scores = ref_sc, pr: tuple[str, ...] = prev) -> Candidate:
                 return _evaluate(family, calib, held, r, r_sc, (*pr, c.effect), norm, blocks, scales, stop)
 
