@@ -489,7 +489,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.traces and not args.json_out:
         raise ValueError("--traces: the traces go into the report's JSON; give --json OUT.json too")
     report = diagnose_dir(args.logdir, adapter=args.adapter, held_out=args.held_out, bounds=bounds,
-                          traces=args.traces or bool(args.plots))
+                          traces=args.traces or bool(args.plots), candidates=args.effects)
     if args.plots:
         from app.engine.diagnosis.plots import diagnosis_plots
 
@@ -670,6 +670,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="station logs: the recalibration's range for one baseline parameter, replacing the wide "
                         "default (e.g. dead_volume_scale=0.9:1.1 for measured dead volumes); repeatable; the "
                         "report lists every range under baseline.bounds")
+    g.add_argument("--effects", nargs="+", default=None, metavar="EFFECT",
+                   help="try only these candidate effects (default: all the logs' family has; station logs: "
+                        "inertia vane_leakage external_leakage heat_transfer tube_dynamics presliding_friction "
+                        "sensor_bias supply_droop valve_dynamics); the baseline's recalibration is the same")
     g.add_argument("--traces", action="store_true",
                    help="with --json: add each held-out log's measured and predicted channels over time "
                         "(traces: the baseline's and the verdict model's predictions, 300 block means per log)")

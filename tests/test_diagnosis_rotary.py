@@ -37,6 +37,7 @@ from app.engine.diagnosis.suite import MAGNITUDES, STRUCTURAL, perturbed, pertur
 from app.engine.params import EFFECT_NAMES, PlantParams, ValveDynamicsEffect
 from app.engine.physics.flow import null_scale
 from app.engine.physics.plant import area_frac
+from tests.conftest import REFDATA
 
 
 @pytest.fixture(scope="module")
@@ -69,6 +70,25 @@ def test_a_diagnosis_asked_for_an_effect_the_family_lacks_names_the_ones_it_has(
     run_protocol(PlantParams(), seed=1, repetitions=2, scale=0.3, kinds=["hold_closed"], outdir=tmp_path)
     with pytest.raises(ValueError, match=r"the rotary family has no candidate stiction; known: inertia, "):
         diagnose_dir(tmp_path, candidates=["vane_leakage", "stiction"])
+    with pytest.raises(ValueError, match=r"no candidate effect given; known: inertia, "):
+        diagnose_dir(tmp_path, candidates=[])
+    # before a log is read: an adapter's family has effects of its own
+    with pytest.raises(ValueError, match=r"the drive family has no candidate vane_leakage; known: inertia, "
+                                         r"sensor_bias, presliding_friction"):
+        diagnose_dir(REFDATA / "emps", candidates=["vane_leakage"])
+
+
+def test_cwrr_diagnose_refuses_an_effect_the_logs_family_lacks(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """``cwrr diagnose --effects`` with a name the logs' family has no add-on for exits 2 naming the ones
+    it has, and writes no report (the effects it has are tried in the side-by-side test below)."""
+    from app.cli import main
+
+    logs, out = tmp_path / "logs", tmp_path / "report.json"
+    run_protocol(PlantParams(), seed=1, repetitions=2, scale=0.3, kinds=["hold_closed"], outdir=logs)
+    assert main(["diagnose", str(logs), "--effects", "vane_leakage", "stiction", "--json", str(out)]) == 2
+    assert "the rotary family has no candidate stiction; known: inertia, vane_leakage," in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_logs_run_once_are_held_out_only_where_other_logs_excite_the_same(nominal_logs: list) -> None:
@@ -1341,21 +1361,27 @@ def test_pressures_in_each_others_columns_a_valve_wired_the_other_way_and_a_reve
     assert "; the angle and speed were read with their signs reversed (" in r["verdict"]["summary"]
 
 
-def test_candidates_fitted_side_by_side_give_the_report_of_one_at_a_time(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_candidates_fitted_side_by_side_give_the_report_of_one_at_a_time(tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     """Fitting candidates (and the recalibration's descents) two at a time shares the replay caches
     between threads; every fit is still a pure function of its inputs, so the report is the one a
     loop over them gives, to the last digit (on the ten-minute bench as well: 156 s one at a time,
-    140 s side by side)."""
+    140 s side by side). Through ``cwrr diagnose --effects``: the ranking holds the effects asked
+    for, each once."""
+    from app.cli import main
     from app.engine.diagnosis import core
 
     rig = perturbed(3).with_effects(vane_leakage=MAGNITUDES["vane_leakage"][1])
-    exps = run_protocol(rig, seed=2, repetitions=2, scale=0.3, kinds=["hold_closed", "prv_steps"])
-    calib = [e for e in exps if e.meta["repetition"] == 1]
-    held = [e for e in exps if e.meta["repetition"] == 2]
-    cands = ["vane_leakage", "external_leakage", "inertia", "sensor_bias"]
-    side_by_side = diagnose(RotaryFamily(), calib, held, candidates=cands, protocol=PROTOCOL)
-    monkeypatch.setattr(core, "EVALUATIONS", 1)
-    one_by_one = diagnose(RotaryFamily(), calib, held, candidates=cands, protocol=PROTOCOL)
-    assert side_by_side["verdict"]["effects"] == ["vane_leakage"]
-    assert len(side_by_side["combination"]) == 1 and side_by_side["ranking"][0]["effect"] == "vane_leakage"
-    assert json.dumps(side_by_side, sort_keys=True, default=str) == json.dumps(one_by_one, sort_keys=True, default=str)
+    run_protocol(rig, seed=2, repetitions=2, scale=0.3, kinds=["hold_closed", "prv_steps"], outdir=tmp_path / "logs")
+    asked = ["vane_leakage", "external_leakage", "inertia", "sensor_bias", "vane_leakage"]
+    reports = []
+    for evaluations in (2, 1):
+        monkeypatch.setattr(core, "EVALUATIONS", evaluations)
+        out = tmp_path / f"side_by_side_{evaluations}.json"
+        assert main(["diagnose", str(tmp_path / "logs"), "--effects", *asked, "--json", str(out)]) == 0
+        reports.append(out.read_text())
+    rep = json.loads(reports[0])
+    assert sorted(c["effect"] for c in rep["ranking"]) == sorted(set(asked))
+    assert rep["verdict"]["effects"] == ["vane_leakage"] and rep["ranking"][0]["effect"] == "vane_leakage"
+    assert len(rep["combination"]) == 1  # the greedy round's three pairs were fitted, and none was kept
+    assert reports[0] == reports[1]

@@ -78,11 +78,14 @@ class DiagnosisRequest(Documented):
             others held out).
         held_out: Names of the logs to score on (whole experiments withheld from every fit);
             default: the tool's own split.
+        effects: The candidate effects to try (default: all nine); the baseline's
+            recalibration is the same either way.
     """
 
     protocol: ProtocolSource | None = None
     run_ids: list[Annotated[int, Field(ge=1, le=2**62)]] | None = Field(None, min_length=2, max_length=200)
     held_out: list[Annotated[str, Field(max_length=128)]] | None = Field(None, max_length=200)
+    effects: list[EffectName] | None = Field(None, min_length=1, max_length=9)
     bounds: Bounds | None = Field(
         None,
         description="The recalibration's range [low, high] per baseline parameter of the rotary rig, replacing the "
@@ -229,7 +232,7 @@ def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, source
                 for suffix in (".csv", ".json"):
                     shutil.copyfile(src.with_suffix(suffix), logdir / (src.stem + suffix))
         report = diagnose_dir(logdir, adapter="station", held_out=req.held_out, stop=stop, bounds=req.bounds,
-                              traces=True)
+                              traces=True, candidates=req.effects)
         # ≈ 10⁵ numbers: beside the logs, not in the run's result, which every listing of runs carries;
         # a disk that cannot take them costs the pictures, not the diagnosis (its traces then answer 404)
         try:

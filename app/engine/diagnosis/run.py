@@ -105,6 +105,17 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     if bounds and kind != "station":
         raise ValueError(f"bounds apply to the rotary rig's station logs; {d} holds {kind} logs, whose family has "
                          "its own fixed ranges")
+    if candidates is not None:
+        # refused before a log is read (core.diagnose refuses them too, after)
+        kin: type[RotaryFamily | DriveFamily | ChamberFamily] = RotaryFamily
+        if kind in ("emps", "chamber_leak"):
+            kin = DriveFamily if kind == "emps" else ChamberFamily
+        unknown = [c for c in candidates if c not in kin.candidates]
+        if unknown or not candidates:
+            raise ValueError(f"the {kin.name} family has no candidate {', '.join(unknown)}; known: "
+                             f"{', '.join(kin.candidates)}" if unknown else
+                             f"no candidate effect given; known: {', '.join(kin.candidates)}")
+        candidates = list(dict.fromkeys(candidates))  # each tried once, in the order given
     if kind == "emps":
         exps = [read_emps(p) for p in sorted(d.glob("*.mat"))]
         calib, held = _split(exps, held_out)
