@@ -949,6 +949,8 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#protocol")).to_contain_text("heat transfer, external leakage, vane leakage")
     expect(page.locator("#effects input")).to_have_count(9)  # one check box per candidate the engine names
     # a simulated rig off parameter by parameter: what the page asks for (answered here, nothing runs)
+    from app.engine.params import EFFECT_NAMES
+
     sent: list[dict[str, Any]] = []
 
     def refuse(route: Any) -> None:
@@ -971,11 +973,25 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     page.fill("[data-bound=dead_volume_scale][data-end='0']", "0.9")
     page.fill("[data-bound=dead_volume_scale][data-end='1']", "1.1")
     page.fill("[data-bound=gain_a][data-end='1']", "1.05")  # the other end stays the default's
+    # the candidates to try: all nine ticked (none sent); with none ticked nothing is sent, and one left out
+    # is sent as the list of the others
+    page.click("#tried summary")
+    expect(page.locator("#tried-effects input:checked")).to_have_count(9)
+    for box in page.locator("#tried-effects input").all():
+        box.uncheck()
+    page.click("#go")
+    expect(page.locator("#msg")).to_have_text("tick at least one candidate effect to try")
+    assert sent == []
+    for box in page.locator("#tried-effects input").all():
+        box.check()
+    page.uncheck("#tried-effects input[value=valve_dynamics]")
     page.click("#go")
     expect(page.locator("#msg")).to_contain_text("not now (test)")
     assert sent == [{"protocol": {"effects": ["heat_transfer"], "magnitude": 2, "param_error": 0.2,
                                   "errors": "each", "seed": 0, "scale": 1},
-                     "bounds": {"dead_volume_scale": [0.9, 1.1], "gain_a": [0.8, 1.05]}}], sent
+                     "bounds": {"dead_volume_scale": [0.9, 1.1], "gain_a": [0.8, 1.05]},
+                     "effects": [e for e in EFFECT_NAMES if e != "valve_dynamics"]}], sent
+    page.check("#tried-effects input[value=valve_dynamics]")
     for end in ("0", "1"):
         page.fill(f"[data-bound=dead_volume_scale][data-end='{end}']", "")
     page.fill("[data-bound=gain_a][data-end='1']", "")
@@ -1236,6 +1252,7 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#src")).to_have_value("protocol")
     expect(page.locator("#scale")).to_have_value("10")
     expect(page.locator("#effects input:checked")).to_have_count(0)
+    expect(page.locator("#tried-effects input:checked")).to_have_count(9)  # it was asked with all nine
     assert not errors, errors
 
 

@@ -11,6 +11,8 @@ const protocolTable = fetch('/api/diagnoses/protocol', {headers: authHeaders()})
   meaning = t.candidate_meaning || {};
   $('effects').innerHTML = t.candidates.map(e =>
     `<label class="cb" title="${esc(meaning[e] || '')}"><input type="checkbox" value="${esc(e)}"> ${esc(e)}</label>`).join('');
+  $('tried-effects').innerHTML = t.candidates.map(e =>
+    `<label class="cb" title="${esc(meaning[e] || '')}"><input type="checkbox" value="${esc(e)}" checked> ${esc(e)}</label>`).join('');
   $('rkinds').innerHTML = t.experiments.map(e =>
     `<label class="cb"><input type="checkbox" value="${esc(e.name)}" checked> ${esc(e.name)}</label>`).join('');
   $('range-rows').innerHTML = '<tr><th>Parameter</th><th>from</th><th>to</th></tr>' + t.baseline.map(b =>
@@ -61,6 +63,10 @@ const send = (url, init = {}) => fetch(url, {...init, headers: {...(init.headers
   .catch(() => { throw new NoAnswer(`the station did not answer ${init.method || 'GET'} ${url} (is it running?)`); });
 $('go').onclick = () => go().catch(e => { if (e instanceof NoAnswer) say(e.message, 'bad'); else throw e; });
 async function go() {
+  // the candidates to try: all (none sent) unless some were left out
+  const boxes = [...document.querySelectorAll('#tried-effects input')];
+  const tried = boxes.filter(c => c.checked).map(c => c.value);
+  if (!tried.length) { say('tick at least one candidate effect to try', 'bad'); return; }
   // the server checks the ranges before anything runs: one refused only when the diagnosis is posted
   // would come after the rig's protocol
   const bounds = ranges();
@@ -85,6 +91,7 @@ async function go() {
     body = {run_ids: $('runids').value.split(',').map(s => s.trim()).filter(Boolean).map(Number)};
   }
   if (bounds) body.bounds = bounds;
+  if (tried.length < boxes.length) body.effects = tried;
   const r = await send('/api/diagnoses', {method: 'POST', headers: {'content-type': 'application/json'}, body: JSON.stringify(body)});
   if (!r.ok) { say(await refusal(r), 'bad'); return; }
   const j = await r.json();
@@ -220,6 +227,8 @@ function fillForm(spec) {
     rangeInputs(name).forEach((e, k) => { if (e) e.value = ends[k]; });
   }
   if (spec.bounds && Object.keys(spec.bounds).length) $('ranges').open = true;
+  document.querySelectorAll('#tried-effects input').forEach(c => { c.checked = !spec.effects || spec.effects.includes(c.value); });
+  if (spec.effects) $('tried').open = true;
 }
 // logs with skipped or uneven samples (the replays put them on a uniform grid and leave what it made up unscored)
 function irregular(logs) {
