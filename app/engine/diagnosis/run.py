@@ -107,14 +107,14 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
                          "its own fixed ranges")
     if candidates is not None:
         # refused before a log is read (core.diagnose refuses them too, after)
-        kin: type[RotaryFamily | DriveFamily | ChamberFamily] = RotaryFamily
+        family_class: type[RotaryFamily | DriveFamily | ChamberFamily] = RotaryFamily
         if kind in ("emps", "chamber_leak"):
-            kin = DriveFamily if kind == "emps" else ChamberFamily
-        unknown = [c for c in candidates if c not in kin.candidates]
+            family_class = DriveFamily if kind == "emps" else ChamberFamily
+        unknown = [c for c in candidates if c not in family_class.candidates]
         if unknown or not candidates:
-            raise ValueError(f"the {kin.name} family has no candidate {', '.join(unknown)}; known: "
-                             f"{', '.join(kin.candidates)}" if unknown else
-                             f"no candidate effect given; known: {', '.join(kin.candidates)}")
+            raise ValueError(f"the {family_class.name} family has no candidate {', '.join(unknown)}; known: "
+                             f"{', '.join(family_class.candidates)}" if unknown else
+                             f"no candidate effect given; known: {', '.join(family_class.candidates)}")
         candidates = list(dict.fromkeys(candidates))  # each tried once, in the order given
     if kind == "emps":
         exps = [read_emps(p) for p in sorted(d.glob("*.mat"))]
