@@ -1124,6 +1124,14 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
             "The baseline is not significantly above the noise: E 0.0102 against a floor of 0.0100 (90 % CI of "
             "the difference -3.00e-4 … 6.00e-4); more or longer held-out logs would tell a small gap from none.")
         expect(page.locator("#detail")).not_to_contain_text("Gap left unexplained")
+    # all nine were tried; a diagnosis asked for fewer says which it left out, as it could not name them
+    expect(page.locator("#detail")).not_to_contain_text("Tried only")
+    fewer = json.loads(json.dumps(rep))
+    fewer["ranking"] = fewer["ranking"][:3]
+    page.evaluate("rep => show(rep)", fewer)
+    expect(page.locator("#detail")).to_contain_text(
+        f"Tried only {', '.join(r['effect'] for r in fewer['ranking'])}, as asked: ")
+    expect(page.locator("#detail")).to_contain_text("were left out, so the verdict cannot name them.")
     rep["verdict"] |= {"effects": ["sensor_bias"], "alternatives": ["friction_per_direction"]}
     rep["alternatives"] = [{"explanation": "friction_per_direction", "instead_of": "sensor_bias",
                             "description": "friction off per direction", "separate_by": "tare the sensors",

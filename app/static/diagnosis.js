@@ -230,6 +230,14 @@ function fillForm(spec) {
   document.querySelectorAll('#tried-effects input').forEach(c => { c.checked = !spec.effects || spec.effects.includes(c.value); });
   if (spec.effects) $('tried').open = true;
 }
+// a diagnosis asked to try fewer candidates ("effects") says which were left out: it could not name them
+function triedOnly(ranking) {
+  const all = Object.keys(meaning), tried = ranking.map(r => r.effect);
+  const out = all.filter(e => !tried.includes(e));
+  if (!tried.length || !out.length || out.length === all.length) return '';
+  return `Tried only ${tried.join(', ')}, as asked: ${out.join(', ')} ${out.length === 1 ? 'was' : 'were'} left out, ` +
+    `so the verdict cannot name ${out.length === 1 ? 'it' : 'them'}.`;
+}
 // logs with skipped or uneven samples (the replays put them on a uniform grid and leave what it made up unscored)
 function irregular(logs) {
   const names = Object.keys(logs);
@@ -297,6 +305,7 @@ function show(rep) {
       v.separating_experiments.map(s => s.experiments.join(', ')).join('; ') + '.' : '',
     alternatives(rep.alternatives || []), left, standingIn(rep.baseline.recalibration), beaten(v.baseline_beaten),
     `Held out: ${rep.experiments.held_out.join(', ')}${rep.experiments.split ? ` (${rep.experiments.split})` : ''}.`,
+    triedOnly(rep.ranking),
     untested(v.untested || [], rep.experiments.unshown || {}),
     ...Object.entries(rep.experiments.dcv_wiring || {}).filter(([, w]) => w.mirrored).map(([s, w]) => `DCV-${s}'s command was read mirrored about 5 V: fully open, chamber ${s} stood near the atmosphere where the format's wiring fills it and near its regulator's pressure where it exhausts it, in ${Math.round(100 * (1 - w.agreement))} % of ${w.samples} settled samples.`),
     (rep.experiments.pressure_order || {}).swapped ? `p_a and p_b were read swapped: with both chambers filling from regulators set at least 0.5 V apart, their pressures stood in the other order in ${Math.round(100 * (1 - rep.experiments.pressure_order.agreement))} % of ${rep.experiments.pressure_order.samples} settled samples.` : '',
