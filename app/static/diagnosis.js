@@ -232,7 +232,7 @@ function fillForm(spec) {
 }
 // a diagnosis asked to try fewer candidates ("effects") says which were left out: it could not name them
 function triedOnly(ranking) {
-  const all = Object.keys(meaning), tried = ranking.map(r => r.effect);
+  const all = [...document.querySelectorAll('#tried-effects input')].map(c => c.value), tried = ranking.map(r => r.effect);
   const out = all.filter(e => !tried.includes(e));
   if (!tried.length || !out.length || out.length === all.length) return '';
   return `Tried only ${tried.join(', ')}, as asked: ${out.join(', ')} ${out.length === 1 ? 'was' : 'were'} left out, ` +

@@ -361,6 +361,23 @@ def _each(fn: Callable[[_T], _R], items: Sequence[_T]) -> list[_R]:
             raise
 
 
+def checked_candidates(family: str, known: Sequence[str], candidates: Sequence[str] | None) -> list[str]:
+    """The effects a diagnosis tries: all ``known`` for None, else ``candidates``, each once in their order.
+
+    Raises:
+        ValueError: A name the family (called ``family`` in the message) has
+            no add-on for, or an empty list; the message lists ``known``.
+    """
+    if candidates is None:
+        return list(known)
+    unknown = [c for c in candidates if c not in known]
+    if unknown:
+        raise ValueError(f"the {family} family has no candidate {', '.join(unknown)}; known: {', '.join(known)}")
+    if not candidates:
+        raise ValueError(f"no candidate effect given; known: {', '.join(known)}")
+    return list(dict.fromkeys(candidates))
+
+
 def raise_if_stopped(stop: threading.Event | None, what: str = "diagnosis") -> None:
     """Raise :class:`Cancelled` once ``stop`` is set."""
     if stop is not None and stop.is_set():
@@ -1560,11 +1577,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     """:func:`diagnose` with BLAS already limited."""
     if not calib_exps or not held_exps:
         raise ValueError("need at least one calibration and one held-out experiment")
-    cands = list(candidates or family.candidates)
-    unknown = [c for c in cands if c not in family.candidates]
-    if unknown:
-        raise ValueError(f"the {family.name} family has no candidate {', '.join(unknown)}; "
-                         f"known: {', '.join(family.candidates)}")
+    cands = checked_candidates(family.name, family.candidates, candidates)
     calib = [family.prepare(e) for e in calib_exps]
     held = [family.prepare(e) for e in held_exps]
     blocks = blocks or (1 if len(held) >= 4 else 8)

@@ -11,7 +11,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from app.engine.diagnosis import rotary
-from app.engine.diagnosis.core import diagnose
+from app.engine.diagnosis.core import checked_candidates, diagnose
 from app.engine.diagnosis.families import ChamberFamily, DriveFamily, split_time
 from app.engine.diagnosis.logs import (
     Experiment,
@@ -105,17 +105,11 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
     if bounds and kind != "station":
         raise ValueError(f"bounds apply to the rotary rig's station logs; {d} holds {kind} logs, whose family has "
                          "its own fixed ranges")
-    if candidates is not None:
-        # refused before a log is read (core.diagnose refuses them too, after)
-        family_class: type[RotaryFamily | DriveFamily | ChamberFamily] = RotaryFamily
-        if kind in ("emps", "chamber_leak"):
-            family_class = DriveFamily if kind == "emps" else ChamberFamily
-        unknown = [c for c in candidates if c not in family_class.candidates]
-        if unknown or not candidates:
-            raise ValueError(f"the {family_class.name} family has no candidate {', '.join(unknown)}; known: "
-                             f"{', '.join(family_class.candidates)}" if unknown else
-                             f"no candidate effect given; known: {', '.join(family_class.candidates)}")
-        candidates = list(dict.fromkeys(candidates))  # each tried once, in the order given
+    # refused before a log is read, by the rule core.diagnose applies
+    family_class: type[RotaryFamily | DriveFamily | ChamberFamily] = RotaryFamily
+    if kind in ("emps", "chamber_leak"):
+        family_class = DriveFamily if kind == "emps" else ChamberFamily
+    checked_candidates(family_class.name, family_class.candidates, candidates)
     if kind == "emps":
         exps = [read_emps(p) for p in sorted(d.glob("*.mat"))]
         calib, held = _split(exps, held_out)
