@@ -196,3 +196,50 @@ def test_a_closed_chambers_gas_relaxes_to_the_wall_without_overshoot(h_a: float,
     g = np.array(gaps) * np.sign(dt0)
     assert np.all(g >= -1e-9)  # never past the wall's temperature
     assert np.all(np.diff(g, axis=0) <= 1e-9)  # only ever nearer
+
+
+def test_loops_compiled_without_reference_counting_give_the_counted_builds_bits() -> None:
+    """``NO_REFCOUNT`` drops only Numba's bookkeeping (``app/engine/physics/jit.py``).
+
+    The plant's step (every effect on, the user pushing, commands changing) and
+    the gap diagnosis's log replay (vane leak, tubes and heat exchange on) are
+    built again as they were before it, with reference counting, and must give
+    the same state and pressures to the bit.
+    """
+    from numba import njit
+
+    from app.engine.diagnosis.rotary import _replay_pneumatics
+    from app.engine.diagnosis.suite import MAGNITUDES
+    from app.engine.human import isotonic
+
+    params = PlantParams().with_effects(**{name: big for name, (_small, big) in MAGNITUDES.items()})
+    k = pl.build_kernel(params)
+    program = isotonic(+1, repetitions=1)
+    rng = np.random.default_rng(3)
+    n = 4000
+    cmds = np.column_stack([rng.uniform(0.0, 6.0, (n, 2)), rng.uniform(0.0, 10.0, (n, 2)), np.zeros((n, 2))])
+    cmds = np.repeat(cmds[::200], 200, axis=0)  # held commands, as the engine writes them
+    counted_step = njit(error_model="numpy")(pl.step.py_func)
+    states = []
+    for step in (pl.step, counted_step):
+        x = pl.initial_state(params, 0.0, 3.0, 3.0)
+        out, work, jac = np.zeros(pl.NO), np.empty(pl.NWORK), np.empty((pl.NN, pl.NN))
+        trace = np.empty((n, pl.NX))
+        for i in range(n):
+            step(i * k.h, x, cmds[i], k, program.t, program.pos, out, work, jac)
+            trace[i] = x
+        states.append(trace)
+    assert np.ptp(states[0][:, pl.I_POS]) > 0.1  # the vane moved: the mechanics ran
+    assert np.array_equal(states[0], states[1])
+
+    theta = states[0][::5, pl.I_POS].copy()
+    omega = states[0][::5, pl.I_VEL].copy()
+    samples = np.ascontiguousarray(cmds[::5, :4])
+    pressures = []
+    for replay in (_replay_pneumatics, njit(error_model="numpy")(_replay_pneumatics.py_func)):
+        out = np.empty((theta.shape[0], 3))
+        replay(k, samples, theta, omega, pl.initial_state(params, theta[0], 3.0, 3.0), 5, 1, out,
+               np.empty(pl.NWORK), np.empty((pl.NN, pl.NN)), np.zeros(pl.NU))
+        pressures.append(out)
+    assert np.ptp(pressures[0][:, 0]) > 0.5  # the chambers filled and emptied
+    assert np.array_equal(pressures[0], pressures[1])

@@ -16,6 +16,7 @@ from app.engine.human import HumanProgram
 from app.engine.params import ParameterError, PlantParams
 from app.engine.physics import plant as pl
 from app.engine.physics import sensors as sn
+from app.engine.physics.jit import NO_REFCOUNT
 
 LOG_COLUMNS: tuple[str, ...] = ("t", "z_a", "z_b", "u_a", "u_b", "p_a", "p_b", "p_s", "theta", "omega", "torque")
 """The run-log column set (issue 6's fixed format)."""
@@ -56,6 +57,9 @@ class Simulator:
         self._noise = np.empty((0, 4))
         self._noise_i = 0
         self._meas = np.empty(sn.NM)
+        # the compiled step's scratch (it is compiled without reference counting, so cannot allocate it)
+        self._work = np.empty(pl.NWORK)
+        self._jac = np.empty((pl.NN, pl.NN))
         self._am_fn: Any = None
         self._am_key: tuple[Any, Any, Any, Any] = (None, None, None, None)
 
@@ -131,7 +135,7 @@ class Simulator:
         if n > 0 and abs(n * h - dt) >= 0.5 * h:
             dt = n * h
         args = (float(self.t), self.x, self.cmd, self.kernel, n, self.program.t, self.program.pos, self.out, sc,
-                self._noise[self._noise_i], self._sensor_state, float(dt), self._meas)
+                self._noise[self._noise_i], self._sensor_state, float(dt), self._meas, self._work, self._jac)
         fn = self._am_fn
         key = self._am_key
         if fn is None or key[0] is not self.kernel or key[1] is not sc or key[2] is not self.program \
@@ -175,13 +179,12 @@ def _compiled_entry(dispatcher: Any, args: tuple[Any, ...]) -> Any:
     return dispatcher.overloads[sig].entry_point
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def _advance_measure(
     t: float, x: np.ndarray, cmd: np.ndarray, k: Any, n: int, prog_t: np.ndarray, prog_pos: np.ndarray,
-    out: np.ndarray, sc: Any, noise: np.ndarray, st: np.ndarray, dt: float, meas: np.ndarray,
+    out: np.ndarray, sc: Any, noise: np.ndarray, st: np.ndarray, dt: float, meas: np.ndarray, work: np.ndarray,
+    jac: np.ndarray,
 ) -> float:
-    work = np.empty(pl.NWORK)
-    jac = np.empty((pl.NN, pl.NN))
     for i in range(n):
         pl.step(t + i * k.h, x, cmd, k, prog_t, prog_pos, out, work, jac)
     t += n * k.h

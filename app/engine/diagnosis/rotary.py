@@ -68,6 +68,7 @@ from app.engine.diagnosis.families import WORKING_PRESSURE_BAR
 from app.engine.diagnosis.logs import Experiment, on_uniform_grid, speed_of, unscored_near_fills
 from app.engine.params import EFFECT_NAMES, HumanParams, PlantParams, conductance_si
 from app.engine.physics import plant as pl
+from app.engine.physics.jit import NO_REFCOUNT
 
 # the encoder unmoved for ± this long: static friction holds [s]. One sample either side at
 # 200 Hz; 10 ms flagged the samples next to every breakaway as sliding while stiction still held
@@ -231,7 +232,6 @@ def _pool() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1), thread_name_prefix="replay")
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
 def replay_pneumatics(k: Any, cmds: np.ndarray, theta: np.ndarray, omega: np.ndarray, x0: np.ndarray,
                       n_sub: int, stride: int, out: np.ndarray) -> None:
     """Step the pneumatic network along a measured motion.
@@ -246,11 +246,20 @@ def replay_pneumatics(k: Any, cmds: np.ndarray, theta: np.ndarray, omega: np.nda
         stride: Pressures are read at every ``stride``-th sample only (the scored ones).
         out: (⌈n/stride⌉, 3) written: P_a, P_b, P_s [bar abs] at those samples.
     """
-    x = x0.copy()
+    _replay_pneumatics(k, cmds, theta, omega, x0.copy(), n_sub, stride, out, np.empty(pl.NWORK),
+                       np.empty((pl.NN, pl.NN)), np.zeros(pl.NU))
+
+
+@njit(cache=True, nogil=True, error_model="numpy", **NO_REFCOUNT)
+def _replay_pneumatics(k: Any, cmds: np.ndarray, theta: np.ndarray, omega: np.ndarray, x: np.ndarray,
+                       n_sub: int, stride: int, out: np.ndarray, work: np.ndarray, jac: np.ndarray,
+                       cmd: np.ndarray) -> None:
+    """:func:`replay_pneumatics` on state ``x`` (advanced in place) with the caller's scratch.
+
+    ``work`` (NWORK), ``jac`` (NN×NN) and ``cmd`` (NU, zeros) are scratch: compiled without
+    reference counting (:mod:`app.engine.physics.jit`), this cannot allocate them.
+    """
     n = cmds.shape[0]
-    work = np.empty(pl.NWORK)
-    jac = np.empty((pl.NN, pl.NN))
-    cmd = np.zeros(pl.NU)
     for i in range(n):
         # read the pressures at the measured angle, not where the last substep's mechanics left it
         if i % stride == 0:

@@ -15,6 +15,7 @@ from numba import njit
 
 from app.engine import tables
 from app.engine.constants import CP_AIR, RHO0_ISO, T0_ISO
+from app.engine.physics.jit import NO_REFCOUNT
 
 R_LAMINAR = 0.995
 """Pressure ratio above which ISO 6358 flow is continued linearly to zero.
@@ -26,7 +27,7 @@ r = 0.995 (C¹ in flow, bounded slope), which changes flows by < 0.5 % of the
 choked value."""
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def iso6358_flow(pu: float, pd: float, c: float, b: float, tu: float) -> tuple[float, float, float]:
     """ISO 6358 mass flow from ``pu`` to ``pd`` (requires pu ≥ pd > 0).
 
@@ -46,7 +47,7 @@ def iso6358_flow(pu: float, pd: float, c: float, b: float, tu: float) -> tuple[f
     return iso6358_flow_k(pu, pd, c * RHO0_ISO * math.sqrt(T0_ISO / tu), b)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def iso6358_flow_k(pu: float, pd: float, k: float, b: float) -> tuple[float, float, float]:
     """:func:`iso6358_flow` with the choked-flow gain precomputed.
 
@@ -79,7 +80,7 @@ def iso6358_flow_k(pu: float, pd: float, k: float, b: float) -> tuple[float, flo
     return g * (pu - pd), g, -g
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def iso6358_signed(p1: float, p2: float, c: float, b: float, t1: float, t2: float) -> tuple[float, float, float]:
     """Bidirectional ISO 6358 flow from node 1 to node 2 (negative if reversed).
 
@@ -89,7 +90,7 @@ def iso6358_signed(p1: float, p2: float, c: float, b: float, t1: float, t2: floa
     return iso6358_signed_k(p1, p2, c * RHO0_ISO * math.sqrt(T0_ISO / t1), c * RHO0_ISO * math.sqrt(T0_ISO / t2), b)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def iso6358_signed_k(p1: float, p2: float, k1: float, k2: float, b: float) -> tuple[float, float, float]:
     """:func:`iso6358_signed` with the gains c·ρ0·√(T0/T) of both ends precomputed."""
     if p1 >= p2:
@@ -98,7 +99,7 @@ def iso6358_signed_k(p1: float, p2: float, k1: float, k2: float, b: float) -> tu
     return -q, -dq_dd, -dq_du
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def interp_clip(x: float, xp: np.ndarray, fp: np.ndarray) -> float:
     """Linear interpolation held constant outside ``xp`` (Simulink lookup)."""
     n = xp.shape[0]
@@ -118,7 +119,7 @@ def interp_clip(x: float, xp: np.ndarray, fp: np.ndarray) -> float:
     return fp[lo] + w * (fp[hi] - fp[lo])
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def interp2_clip(x: float, y: float, xp: np.ndarray, yp: np.ndarray, fp: np.ndarray) -> float:
     """Bilinear interpolation on a grid ``fp[i, j] = f(xp[i], yp[j])``, clipped."""
     nx = xp.shape[0]
@@ -143,7 +144,7 @@ def interp2_clip(x: float, y: float, xp: np.ndarray, yp: np.ndarray, fp: np.ndar
     )
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def polyval(coef: np.ndarray, x: float) -> float:
     """Horner evaluation, highest power first (numpy.polyval order)."""
     acc = 0.0
@@ -152,7 +153,7 @@ def polyval(coef: np.ndarray, x: float) -> float:
     return acc
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def new_model_flow(
     pu: float,
     pd: float,
@@ -206,7 +207,7 @@ def new_model_flow(
     return q, dq_dd * a, -dq_dd
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def null_scale(u: float, s0: float, width_v: float) -> float:
     """Flow scale of both port paths of the MPYE at command ``u`` [V] (1 = unattenuated).
 

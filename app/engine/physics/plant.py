@@ -51,6 +51,7 @@ from app.engine.physics.flow import (
     null_scale,
     polyval,
 )
+from app.engine.physics.jit import NO_REFCOUNT
 
 # ----------------------------------------------------------------- state layout
 I_POS = 0  # θ [rad] or x [m]
@@ -215,7 +216,7 @@ def derive_new_model_maps_cached(c: float, b: float, ulf: float, ule: float, p_a
 # ----------------------------------------------------------------- helpers
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def _vol_temps(
     x: np.ndarray, pos: float, v_o: float, v_t: float, vd_a: float, vd_b: float, area_a: float, area_b: float,
     pos_min: float, pos_max: float, heat_on: bool, t_atm: float, vol: np.ndarray, tn: np.ndarray
@@ -234,14 +235,14 @@ def _vol_temps(
         tn[N_CB] = x[I_TCB]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def vol_temps(x: np.ndarray, k: Any, vol: np.ndarray, tn: np.ndarray) -> None:
     """Node volumes [m³] and temperatures [K] of state ``x`` (6 entries each)."""
     _vol_temps(x, x[I_POS], k.prv_vol, k.tube_vol, k.vd_a, k.vd_b, k.area_a, k.area_b, k.pos_min, k.pos_max,
                k.heat_on, k.t_atm, vol, tn)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def chamber_pressures(x: np.ndarray, k: Any) -> tuple[float, float]:
     """(p_a, p_b) chamber pressures [Pa] of state ``x``."""
     va = k.vd_a + k.area_a * (x[I_POS] - k.pos_min)
@@ -251,7 +252,7 @@ def chamber_pressures(x: np.ndarray, k: Any) -> tuple[float, float]:
     return x[I_M0 + N_CA] * R_AIR * ta / va, x[I_M0 + N_CB] * R_AIR * tb / vb
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def supply_sensor_pressure(x: np.ndarray, k: Any, at_prv_a: bool) -> float:
     """Pressure at PS-0 [Pa]: the compressor line, or PRV-a's outlet (CPR set-up)."""
     if at_prv_a:
@@ -259,7 +260,7 @@ def supply_sensor_pressure(x: np.ndarray, k: Any, at_prv_a: bool) -> float:
     return x[I_PS]
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def area_frac(disp_v: float, mp: np.ndarray) -> float:
     """MPYE area fraction at spool displacement ``disp_v`` [V] (0 when closed).
 
@@ -278,7 +279,7 @@ def area_frac(disp_v: float, mp: np.ndarray) -> float:
     return mp[1, i] + w * (mp[1, i + 1] - mp[1, i])
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def stribeck_params(p_lookup_bar: float, positive: bool, fr: np.ndarray) -> tuple[float, float, float, float]:
     """(T_s, T_c, ω_s, B) magnitudes for one direction at ``p_lookup_bar``.
 
@@ -305,14 +306,14 @@ def stribeck_params(p_lookup_bar: float, positive: bool, fr: np.ndarray) -> tupl
     )
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def stribeck_curve(speed: float, ts: float, tc: float, ws: float, b: float, j: float) -> float:
     """Stribeck magnitude T_c + (T_s − T_c)·exp(−(|ω|/ω_s)^j) + B·|ω| (Eq 3.12)."""
     s = abs(speed)
     return tc + (ts - tc) * stribeck_decay(s / ws, j) + b * s
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def stribeck_decay(s: float, j: float) -> float:
     """exp(−s^j) for s = |ω|/ω_s ≥ 0; j = 2 (the thesis's shape) without ``pow``."""
     if j == 2.0:
@@ -320,13 +321,13 @@ def stribeck_decay(s: float, j: float) -> float:
     return math.exp(-(s**j))
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def friction_lookup_pressure(pa: float, pb: float) -> float:
     """Pressure [bar abs] at which Table 4.2 is read: the lower chamber pressure."""
     return min(pa, pb) / BAR
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def human_target(t: float, prog_t: np.ndarray, prog_pos: np.ndarray) -> tuple[float, float]:
     """Intended position and speed of the user at time ``t`` (piecewise linear)."""
     n = prog_t.shape[0]
@@ -351,7 +352,7 @@ def human_target(t: float, prog_t: np.ndarray, prog_pos: np.ndarray) -> tuple[fl
     return prog_pos[lo] + sp * (t - prog_t[lo]), sp
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def human_torque(
     t: float, pos: float, vel: float, prog_t: np.ndarray, prog_pos: np.ndarray, kh: float, dh: float, lim: float
 ) -> float:
@@ -376,7 +377,7 @@ def human_torque(
     return min(max(ti, -lim), lim)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def _edge(i: int, j: int, q: float, dqi: float, dqj: float, f: np.ndarray, jac: np.ndarray) -> None:
     """Add a flow q from node i to node j (−1 = fixed-pressure boundary)."""
     if i >= 0:
@@ -391,7 +392,7 @@ def _edge(i: int, j: int, q: float, dqi: float, dqj: float, f: np.ndarray, jac: 
             jac[j, i] += dqi
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def pneumatic_flows(
     p: np.ndarray, tn: np.ndarray, x: np.ndarray, k: Any, f: np.ndarray, jac: np.ndarray
 ) -> float:
@@ -485,7 +486,7 @@ def pneumatic_flows(
     return q_sup
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def _solve_network(jac: np.ndarray, dpdm: np.ndarray, h: float, f: np.ndarray, dm: np.ndarray) -> None:
     """The gas mass changes of one linearly implicit step: dm = (I − h·∂f/∂m)⁻¹·h·f.
 
@@ -560,7 +561,7 @@ def _solve_network(jac: np.ndarray, dpdm: np.ndarray, h: float, f: np.ndarray, d
     dm[0], dm[1], dm[2], dm[3], dm[4], dm[5] = b0, b1, b2, b3, b4, b5
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def regulator_update(
     x: np.ndarray, side: int, p_set: float, p_out: float, gain: float, db_on: float, db_off: float, dz: float,
     decay: float,
@@ -593,7 +594,7 @@ def regulator_update(
     x[I_XA + side] = xc + (x[I_XA + side] - xc) * decay
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def spool_error(e: float, dz: float) -> float:
     """The regulator's error past its dead zone ``dz`` [Pa] (``e`` itself for none)."""
     if e > dz:
@@ -603,7 +604,7 @@ def spool_error(e: float, dz: float) -> float:
     return 0.0
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def step_pneumatics(x: np.ndarray, cmd: np.ndarray, k: Any, work: np.ndarray, jac: np.ndarray) -> float:
     """Advance the valves, gas masses, supply and chamber temperatures of ``x`` by ``k.h``.
 
@@ -708,7 +709,7 @@ def step_pneumatics(x: np.ndarray, cmd: np.ndarray, k: Any, work: np.ndarray, ja
     return q_sup
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def step(
     t: float,
     x: np.ndarray,
@@ -759,7 +760,7 @@ def step(
     out[O_QS] = q_sup
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def _end_stops(x: np.ndarray, pos_min: float, pos_max: float) -> None:
     """Inelastic end stops: clamp the position, kill speed into the stop."""
     if x[I_POS] >= pos_max:
@@ -772,7 +773,7 @@ def _end_stops(x: np.ndarray, pos_min: float, pos_max: float) -> None:
             x[I_VEL] = 0.0
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def _moreau_mech(
     x: np.ndarray, drive: float, p_lu: float, fr: np.ndarray, fr_j: float, inertia: float,
     pos_min: float, pos_max: float, h: float,
@@ -817,7 +818,7 @@ def _moreau_mech(
     return tf
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def _lugre_mech(
     x: np.ndarray, drive: float, p_lu: float, fr: np.ndarray, fr_j: float, inertia: float,
     pos_min: float, pos_max: float, sigma0: float, sigma1: float, h: float,

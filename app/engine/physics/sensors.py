@@ -19,6 +19,7 @@ from numba import njit
 
 from app.engine.constants import BAR
 from app.engine.params import PlantParams
+from app.engine.physics.jit import NO_REFCOUNT
 
 SensorConst: Any = namedtuple(
     "SensorConst",
@@ -53,12 +54,12 @@ def build_sensor_const(p: PlantParams) -> Any:
     )
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", **NO_REFCOUNT)
 def _quant(v: float, lsb: float) -> float:
     return math.floor(v / lsb + 0.5) * lsb
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", **NO_REFCOUNT)
 def measure(
     pa: float, pb: float, ps: float, pos: float, ti: float, sc: Any, noise: np.ndarray, st: np.ndarray, dt: float,
     out: np.ndarray,
