@@ -20,7 +20,7 @@ fine: the caller holds them alive for the call. Functions that allocate keep
 the runtime and may call these freely (the simulator's closed loop does: its
 controllers allocate their fuzzy inference's scratch per tick).
 
-``_nrt`` is the option's name in Numba's CPU target (0.59–0.68 here). Its
+``_nrt`` is the option's name in Numba's CPU target (since 2015; 0.68 here). Its
 leading underscore means that Numba does not document it. A Numba that
 dropped it would refuse it at the first compile ("Unrecognized options"), so
 the simulator and every test would stop loudly rather than slow down
