@@ -43,7 +43,7 @@ def _sim_scenario(args: argparse.Namespace) -> int:
     on = args.scenario != "SC-1"  # SPEC §5: PDRA and TDRA on in SC-2 to SC-4
     case = Case(args.scenario, target, on, on)
     w0 = time.perf_counter()
-    run = run_case(case, args.controller or "pid", seed=args.seed, settings=ScenarioSettings(pw_bar=args.pw))
+    run = run_case(case, args.controller or "fuzzy", seed=args.seed, settings=ScenarioSettings(pw_bar=args.pw))
     wall = time.perf_counter() - w0
     rec = run.record()
     out: dict[str, object] = {**rec, "working_pressure_bar": args.pw, "seed": args.seed,
@@ -606,7 +606,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "controller, faster than real time")
     s.add_argument("--scenario", choices=SIM_SCENARIOS, default="",
                    help="run this scenario (SPEC §5) and print its six metrics; without it, a default workout")
-    s.add_argument("--controller", choices=SIM_CONTROLLERS, default=None, help="with --scenario (default: pid)")
+    s.add_argument("--controller", choices=SIM_CONTROLLERS, default=None, help="with --scenario (default: fuzzy)")
     s.add_argument("--target", type=float, default=None,
                    help="with --scenario: target torque [N·m], positive pronation (FP), negative supination "
                         "(FS); default 1.2")

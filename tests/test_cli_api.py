@@ -73,6 +73,27 @@ def test_sim_runs_one_scenario_with_one_controller_as_the_thesis_bench_scores_it
         assert words in capsys.readouterr().err, argv
 
 
+def test_an_exercise_with_no_controller_chosen_runs_one_that_does_not_chatter(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """What a therapist gets by pressing start: the API's, the station's and ``cwrr sim``'s default
+    controller is one thing, and on the simulated rig it leaves no pressure toggle to warn about (Eq 3.26's
+    Cascade PID, the default until the fifty-third session, toggles chamber b by ±0.14–0.24 bar in SC-1,
+    docs/controllers.md)."""
+    from app.api.models import RunRequest
+    from app.cli import main
+    from app.engine.metrics import TOGGLE_WARN_BAR
+    from app.engine.station import RunSpec
+
+    assert main(["sim", "--scenario", "SC-1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["controller"] == RunRequest.model_validate({}).controller == RunSpec().controller
+    assert max(out["pressure_toggle_bar"].values()) < TOGGLE_WARN_BAR, out["pressure_toggle_bar"]
+    page = (Path(__file__).parents[1] / "app" / "static" / "index.html").read_text()
+    assert f'<option value="{out["controller"]}" selected>' in page  # the dashboard's picker starts on it too
+    assert main(["sim", "--scenario", "SC-1", "--controller", "pid", "--json"]) == 0  # the toggle is there to see
+    assert max(json.loads(capsys.readouterr().out)["pressure_toggle_bar"].values()) > TOGGLE_WARN_BAR
+
+
 def test_health_and_openapi_with_lifespan(tmp_path: Path) -> None:
     app = create_app(Settings(rate_hz=200.0, data_dir=str(tmp_path), viser_port=0))
     with TestClient(app) as c:

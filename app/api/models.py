@@ -258,7 +258,8 @@ class RunRequest(Documented):
 
     Attributes:
         scenario: SC-1 free motion, SC-2 with PDRA/TDRA, SC-3 torque disturbance, SC-4 pressure disturbance.
-        controller: PRV controller.
+        controller: PRV controller (default: the Cascade Fuzzy Adaptive PID, the thesis's own; Eq 3.26's
+            Cascade PID chatters on the simulated rig's regulators, docs/controllers.md).
         target_nm: Signed target torque [N·m]: positive = pronation (CCW), negative = supination.
         pw_bar: Working pressure [bar abs].
         person: Pseudonymous id of the person exercising (no names).
@@ -268,7 +269,7 @@ class RunRequest(Documented):
     model_config = ConfigDict(extra="forbid")
 
     scenario: Literal["SC-1", "SC-2", "SC-3", "SC-4"] = "SC-1"
-    controller: Literal["default", "pid", "fuzzy"] = "pid"
+    controller: Literal["default", "pid", "fuzzy"] = "fuzzy"
     target_nm: float = Field(1.2, ge=-3.0, le=3.0, description="N·m, signed")
     pw_bar: float = Field(3.0, ge=1.5, le=6.0, description="bar abs")
     person: PersonId = ""

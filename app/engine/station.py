@@ -194,7 +194,7 @@ class RunSpec:
     """
 
     scenario: str = "SC-1"
-    controller: ControllerName = "pid"
+    controller: ControllerName = "fuzzy"
     target_nm: float = 1.2
     pw_bar: float = 3.0
     person: str = ""
