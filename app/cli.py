@@ -725,6 +725,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:  # includes ParameterError: the message names the parameter
         print(f"cwrr: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a path that cannot be read or written: its message names it
+        print(f"cwrr {args.cmd}: error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:  # Ctrl-C: a line, not a traceback from wherever the work was waiting
         print(f"cwrr {args.cmd}: stopped", file=sys.stderr)
         return 130

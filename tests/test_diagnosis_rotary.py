@@ -656,6 +656,20 @@ def test_cwrr_protocol_draws_errors_parameter_by_parameter(tmp_path: Path,
     assert "14 logs written" in out and len(list(tmp_path.glob("*.csv"))) == 14
     # a short protocol is said to pin the nominal values down less where its length is chosen
     assert "a protocol 0.2 × as long pins the model's nominal values down less" in out
+    # run again into the same folder: refused before anything runs, naming the logs in the way, and the
+    # folder as it was (the writer never overwrites a log, and used to fail at the first clash with a
+    # traceback); a file where the folder should be is refused in words too
+    before = {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()}
+    (tmp_path / "dcv_steps-1.csv").unlink()
+    (tmp_path / "dcv_steps-1.json").unlink()
+    del before["dcv_steps-1.csv"], before["dcv_steps-1.json"]
+    assert main(["protocol", str(tmp_path), "--scale", "0.2"]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path} already holds prv_steps-1.csv, prv_steps-1.json, hold_closed-1.csv" in err, err
+    assert "and 22 more: the protocol writes its logs under those names and never overwrites one" in err, err
+    assert {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()} == before
+    assert main(["protocol", str(tmp_path / "prv_steps-1.csv"), "--scale", "0.2"]) == 2
+    assert "prv_steps-1.csv is a file, not a directory for the protocol's logs" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["protocol", str(tmp_path / "x"), "--errors", "every"])
     assert "invalid choice: 'every'" in capsys.readouterr().err and not (tmp_path / "x").exists()

@@ -233,6 +233,22 @@ def _experiment(name: str, log: np.ndarray, meta: dict[str, object]) -> Experime
                       {c: cols[c] for c in MEASURED}, dict(meta))
 
 
+def check_outdir(outdir: str | Path, names: Sequence[str]) -> None:
+    """Refuse ``outdir`` if it is not a directory, or if it holds a log under one of ``names`` already.
+
+    A log is never overwritten (the writer opens it exclusively), so without this a clash found
+    at the fifth experiment would leave four new logs beside the old ones.
+    """
+    d = Path(outdir)
+    if d.exists() and not d.is_dir():
+        raise ValueError(f"{d} is a file, not a directory for the protocol's logs")
+    taken = [f"{n}{ext}" for n in names for ext in (".csv", ".json") if (d / f"{n}{ext}").exists()]
+    if taken:
+        shown = ", ".join(taken[:4]) + (f" and {len(taken) - 4} more" if len(taken) > 4 else "")
+        raise ValueError(f"{d} already holds {shown}: the protocol writes its logs under those names and never "
+                         "overwrites one; pick an empty directory, or move those logs away")
+
+
 def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: int = 2, scale: float = 1.0,
                  kinds: Sequence[str] | None = None, outdir: str | Path | None = None,
                  stop: threading.Event | None = None) -> list[Experiment]:
@@ -250,12 +266,19 @@ def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: 
 
     Returns:
         The experiments, named ``KIND-REP`` (e.g. ``hold_closed-2``).
+
+    Raises:
+        ValueError: An unknown experiment, or an ``outdir`` that is a file or
+            already holds a log under a name the protocol writes (checked before
+            anything runs, so a refused call writes nothing).
     """
     params = params or PlantParams()
     kinds = list(kinds or VISIBLE)
     unknown = [k for k in kinds if k not in VISIBLE]
     if unknown:
         raise ValueError(f"no protocol experiment {', '.join(unknown)}; known: {', '.join(VISIBLE)}")
+    if outdir is not None:
+        check_outdir(outdir, [f"{kind}-{rep + 1}" for rep in range(repetitions) for kind in kinds])
     exps: list[Experiment] = []
     for rep in range(repetitions):
         sch = {s.name: s for s in schedules(rep, scale)}
