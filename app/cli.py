@@ -488,6 +488,18 @@ def _diagnose(args: argparse.Namespace) -> int:
             raise ValueError(f"--bound {text!r}: expected NAME=LO:HI, e.g. dead_volume_scale=0.9:1.1") from None
     if args.traces and not args.json_out:
         raise ValueError("--traces: the traces go into the report's JSON; give --json OUT.json too")
+    # where the results go is checked before the diagnosis runs (a minute on ten minutes of logs)
+    if args.json_out:
+        out = Path(args.json_out)
+        if out.is_dir():
+            raise ValueError(f"--json {out}: a folder; give the report's file name, e.g. {out / 'report.json'}")
+        if not out.parent.is_dir() or not os.access(out.parent, os.W_OK):
+            raise ValueError(f"--json {out}: the folder {out.parent} does not exist or cannot be written")
+    if args.plots:
+        plots = Path(args.plots)
+        have = next(p for p in (plots, *plots.parents) if p.exists())
+        if not have.is_dir() or not os.access(have, os.W_OK):
+            raise ValueError(f"--plots {plots}: {have} is not a folder that can be written")
     report = diagnose_dir(args.logdir, adapter=args.adapter, held_out=args.held_out, bounds=bounds,
                           traces=args.traces or bool(args.plots), candidates=args.effects)
     if args.plots:

@@ -883,6 +883,37 @@ def test_cwrr_diagnose_traces_and_draws_a_chambers_held_out_record_over_time(tmp
     assert "traces" not in json.loads(out.read_text())["reports"]["Ultimaker_020"]
 
 
+def test_cwrr_diagnose_refuses_where_its_results_cannot_go_before_it_runs(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A report path in a missing folder, a folder given as the report, a plots folder under a file, and an
+    adapter's folder without its records: each refused in words before a log is read (a diagnosis of ten
+    minutes of logs takes most of a minute, and used to end in a traceback when its report had nowhere to go)."""
+    import app.engine.diagnosis.run as run
+    from app.cli import main
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    shutil.copy(REF / "chamber_leak" / "Ultimaker_020.csv", logs)
+
+    def not_reached(*_a: Any, **_k: Any) -> None:
+        raise AssertionError("the diagnosis ran")
+
+    with monkeypatch.context() as m:
+        m.setattr(run, "diagnose", not_reached)
+        for args, words in (
+                (["--json", str(tmp_path / "no" / "r.json")], f"the folder {tmp_path / 'no'} does not exist"),
+                (["--json", str(tmp_path)], "a folder; give the report's file name"),
+                (["--plots", str(logs / "Ultimaker_020.csv" / "figs")], "Ultimaker_020.csv is not a folder that")):
+            assert main(["diagnose", str(logs), *args]) == 2, args
+            assert words in capsys.readouterr().err, args
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["logs"]  # nothing written
+    assert main(["diagnose", str(logs), "--adapter", "emps"]) == 2
+    assert "no .mat records for the emps adapter" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main(["diagnose", str(tmp_path / "empty"), "--adapter", "chamber_leak"]) == 2
+    assert "no records for the chamber_leak adapter" in capsys.readouterr().err
+
+
 def test_cwrr_diagnose_names_a_channel_that_reads_one_value_throughout(tmp_path: Path,
                                                                       capsys: pytest.CaptureFixture[str]) -> None:
     """A closed-chamber record in refdata's format whose sensor reads 7.315 bar (gauge) in every sample."""

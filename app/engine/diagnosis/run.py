@@ -111,13 +111,21 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
         family_class = DriveFamily if kind == "emps" else ChamberFamily
     checked_candidates(family_class.name, family_class.candidates, candidates)
     if kind == "emps":
-        exps = [read_emps(p) for p in sorted(d.glob("*.mat"))]
+        mats = sorted(d.glob("*.mat"))
+        if not mats:
+            raise LogFormatError(f"{d}: no .mat records for the emps adapter (e.g. DATA_EMPS.mat and "
+                                 "DATA_EMPS_PULSES.mat)")
+        exps = [read_emps(p) for p in mats]
         calib, held = _split(exps, held_out)
         rep = diagnose(DriveFamily(), calib, held, candidates, protocol=PROTOCOL, stop=stop, with_traces=traces)
         return rep | {"adapter": "emps"}
     if kind == "chamber_leak":
+        records = sorted(d.glob("*.csv"))
+        if not records:
+            raise LogFormatError(f"{d}: no records for the chamber_leak adapter (NAME.csv, ';'-separated: t [ms], "
+                                 "p [V], p [bar])")
         reports = {}
-        for p in sorted(d.glob("*.csv")):
+        for p in records:
             a, b = split_time(read_chamber_leak(p))
             fam = ChamberFamily()
             rep = diagnose(fam, [a], [b], candidates, protocol=PROTOCOL, stop=stop, with_traces=traces)
