@@ -28,6 +28,28 @@ SIM_SCENARIOS = ("SC-1", "SC-2", "SC-3", "SC-4")
 SIM_CONTROLLERS = ("default", "pid", "fuzzy")
 
 
+def seed_arg(text: str) -> int:
+    """``--seed``: a whole number ≥ 0 (numpy's generators take no negative seed)."""
+    try:
+        v = int(text)
+    except ValueError:
+        v = -1
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a seed: give a whole number, 0 or more")
+    return v
+
+
+def port_arg(text: str) -> int:
+    """A TCP port: a whole number from 1 to 65535."""
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if not 1 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a TCP port: give a whole number from 1 to 65535")
+    return v
+
+
 def _sim_scenario(args: argparse.Namespace) -> int:
     """One of the thesis's scenarios (SPEC §5) with one controller, scored as ``bench thesis`` scores it."""
     from app.engine.params import check_range
@@ -625,7 +647,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--duration", type=float, default=None, help="default workout: simulated time [s] (60)")
     s.add_argument("--pw", type=float, default=3.0, help="working pressure [bar abs]")
     s.add_argument("--direction", choices=("FP", "FS"), default=None, help="default workout: direction (FP)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=seed_arg, default=0)
     s.add_argument("--log-dir", default="", help="write the run log (CSV + JSON) here")
     s.add_argument("--name", default="workout")
     s.add_argument("--json", action="store_true")
@@ -634,7 +656,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("which", choices=("perf", "thesis"))
     b.add_argument("--duration", type=float, default=60.0, help="perf: simulated workout length [s]")
     b.add_argument("--out", default="", help="thesis: output directory")
-    b.add_argument("--seed", type=int, default=0, help="thesis: base seed of the sensor noise")
+    b.add_argument("--seed", type=seed_arg, default=0, help="thesis: base seed of the sensor noise")
     b.add_argument("--no-plots", action="store_true", help="thesis: skip the figures")
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=_bench)
@@ -660,7 +682,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "thesis 3.2.4's speeds (the default valve has it)")
     i.add_argument("--ns", type=int, default=100, help="static experiments per direction (>= 30)")
     i.add_argument("--nd", type=int, default=100, help="dynamic experiments per direction (>= 30)")
-    i.add_argument("--seed", type=int, default=0)
+    i.add_argument("--seed", type=seed_arg, default=0)
     i.add_argument("--out", default="", help="write result.json (per-test data) and the friction plot here")
     i.add_argument("--table", default="", help="sweep: write the controllers' friction table (JSON) here; "
                    "closedloop: the table under test (default Table 4.2)")
@@ -705,7 +727,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--scale", type=float, default=1.0,
                    help="duration factor (1: ≈ 83 s of logs per repetition; under 1 the logs pin the model's "
                         "nominal values down less)")
-    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--seed", type=seed_arg, default=0)
     q.set_defaults(fn=_protocol)
     v = sub.add_parser("serve", help="start the lab station server (on the simulated plant unless a hardware "
                        "configuration names the rig)")
@@ -723,7 +745,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.set_defaults(fn=_serve)
     mp = sub.add_parser("modbus-plant", help="serve the simulated rig over Modbus TCP (hardware-in-the-loop)")
     mp.add_argument("--host", default="127.0.0.1")
-    mp.add_argument("--port", type=int, default=5020)
+    mp.add_argument("--port", type=port_arg, default=5020)
     mp.add_argument("--hardware", default="", help="YAML hardware configuration (register layout and scaling)")
     mp.set_defaults(fn=_modbus_plant)
     return ap

@@ -73,6 +73,25 @@ def test_sim_runs_one_scenario_with_one_controller_as_the_thesis_bench_scores_it
         assert words in capsys.readouterr().err, argv
 
 
+@pytest.mark.parametrize("argv", [["sim", "--seed", "-1"], ["bench", "thesis", "--seed", "x"],
+                                  ["identify", "rotary", "--seed", "-2"], ["protocol", "logs", "--seed", "-3"],
+                                  ["modbus-plant", "--port", "-5"], ["modbus-plant", "--port", "70000"]])
+def test_a_seed_or_port_that_cannot_be_one_is_refused_naming_the_argument(
+        argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A negative seed reached numpy, which answered "expected non-negative integer" without saying which
+    argument; a negative port started a Modbus plant on modbus://127.0.0.1:-5."""
+    from app.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    flag = argv[-2]
+    assert f"argument {flag}: '{argv[-1]}' is not a " in err, err
+    assert list(tmp_path.iterdir()) == []  # nothing written
+
+
 def test_an_exercise_with_no_controller_chosen_runs_one_that_does_not_chatter(
         capsys: pytest.CaptureFixture[str]) -> None:
     """What a therapist gets by pressing start: the API's, the station's and ``cwrr sim``'s default
