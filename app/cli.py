@@ -522,8 +522,19 @@ def _diagnose(args: argparse.Namespace) -> int:
         have = next(p for p in (plots, *plots.parents) if p.exists())
         if not have.is_dir() or not os.access(have, os.W_OK):
             raise ValueError(f"--plots {plots}: {have} is not a folder that can be written")
-    report = diagnose_dir(args.logdir, adapter=args.adapter, held_out=args.held_out, bounds=bounds,
-                          traces=args.traces or bool(args.plots), candidates=args.effects)
+    # on a terminal, one line kept up to date says where the diagnosis is (a minute on ten minutes of logs)
+    live = sys.stderr.isatty()
+
+    def progress(msg: str) -> None:
+        print(f"\r\033[K{msg}…", end="", file=sys.stderr, flush=True)
+
+    try:
+        report = diagnose_dir(args.logdir, adapter=args.adapter, held_out=args.held_out, bounds=bounds,
+                              traces=args.traces or bool(args.plots), candidates=args.effects,
+                              progress=progress if live else None)
+    finally:
+        if live:
+            print("\r\033[K", end="", file=sys.stderr, flush=True)
     if args.plots:
         from app.engine.diagnosis.plots import diagnosis_plots
 

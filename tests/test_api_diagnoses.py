@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -94,9 +95,21 @@ def test_a_protocol_diagnosis_is_stored_as_a_run_with_its_report(client: TestCli
                                             "effects": tried})
     assert r.status_code == 202, r.text
     rid = r.json()["run_id"]
+    # while it runs, the run says what it is doing: the protocol's experiments, then the diagnosis's stages
+    said: list[str] = []
+    while (now := client.get(f"/api/runs/{rid}").json())["status"] == "running":
+        if now["progress"] and now["progress"] not in said:
+            said.append(now["progress"])
+        time.sleep(0.02)
     _join(client, rid)
+    assert said and said[0].startswith("simulating experiment "), said
+    assert "recalibrating the baseline on 7 logs" in said, said  # the polls see the long stages, not every one
+    stages = ("simulating experiment", "recalibrating", "fitting 3", "candidate", "fitting 2", "weighing", "writing")
+    seen = [next(i for i, st in enumerate(stages) if m.startswith(st)) for m in said]
+    assert seen == sorted(seen), said  # in the order they run
     run = client.get(f"/api/runs/{rid}").json()
     assert run["kind"] == "diagnosis" and run["status"] == "complete", run["result"]
+    assert run["progress"] is None  # once it has ended
     rep = run["result"]
     assert rep["verdict"]["effects"][:1] == ["sensor_bias"]
     assert sorted(c["effect"] for c in rep["ranking"]) == tried and run["spec"]["effects"] == tried

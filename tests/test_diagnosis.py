@@ -210,6 +210,23 @@ def test_the_core_recovers_known_effects_and_ranks_them_first() -> None:
     _check_reasons(r)
 
 
+def test_the_diagnosis_says_what_it_is_doing_and_is_the_same_for_it() -> None:
+    """``progress`` hears each stage as it starts and each candidate's fit as it ends (two fit at once, so
+    from two threads): the recalibration, the candidates counted up to their number, the rounds beside the
+    first effect, the alternatives, the report. Listening changes nothing in the report."""
+    exps = [_drive(s, 80.0, -4.0) for s in range(5)]
+    said: list[str] = []
+    heard = diagnose(DriveFamily(), exps[:3], exps[3:], progress=said.append)
+    assert heard == diagnose(DriveFamily(), exps[:3], exps[3:])
+    cands = DriveFamily.candidates
+    assert said[0] == "recalibrating the baseline on 3 logs" and said[1] == f"fitting {len(cands)} candidates"
+    fitted = said[2:2 + len(cands)]
+    assert [m.split(" fitted")[0] for m in fitted] == [f"candidate {k} of {len(cands)}" for k in range(1, 4)]
+    assert sorted(m.split("(")[1].rstrip(")") for m in fitted) == sorted(cands)  # each once, in any order
+    assert "fitting 2 candidates beside inertia" in said
+    assert said[-2:] == ["weighing the alternatives to inertia + sensor_bias", "writing the report"], said
+
+
 def test_where_says_which_held_out_log_the_gap_lies_in() -> None:
     # the drive's offset in one held-out log only: the baseline's residual lies there, not in its twin
     exps = [_drive(s, 0.0, 0.0) for s in range(4)] + [_drive(4, 0.0, -8.0)]

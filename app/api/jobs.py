@@ -26,6 +26,7 @@ class Jobs:
         self._lock = threading.Lock()
         self._threads: dict[str, threading.Thread] = {}
         self._stops: dict[str, threading.Event] = {}  # each job's own: one is stopped without the others
+        self._said: dict[str, str] = {}  # what each running job last said it was doing
         self.stop = threading.Event()  # the server is stopping: set with every job's
 
     def start(self, name: str, target: Callable[[threading.Event], None], limit: int = 1) -> None:
@@ -56,6 +57,7 @@ class Jobs:
             return "the server is stopping; no new job starts"
         self._threads = {n: t for n, t in self._threads.items() if t.is_alive()}
         self._stops = {n: e for n, e in self._stops.items() if n in self._threads}
+        self._said = {n: m for n, m in self._said.items() if n in self._threads}
         if len(self._threads) >= limit:
             return (f"{', '.join(self._threads)} is still running; start this one when it has finished "
                     "(poll its run)")
@@ -66,6 +68,17 @@ class Jobs:
         before it stores anything."""
         with self._lock:
             return self._refusal(limit)
+
+    def say(self, name: str, message: str) -> None:
+        """Job ``name`` reports what it is doing now (read back by :meth:`progress`)."""
+        with self._lock:
+            self._said[name] = message
+
+    def progress(self, name: str) -> str | None:
+        """What job ``name`` last said it was doing; None once it has ended (or said nothing)."""
+        with self._lock:
+            t = self._threads.get(name)
+            return self._said.get(name) if t is not None and t.is_alive() else None
 
     def running(self) -> list[str]:
         """Names of the jobs still running."""

@@ -531,6 +531,9 @@ class RunInfo(Documented):
         station: The station that ran it: its lasting id, then its host and
             data folder ("" for runs stored before stations were named).
         has_series: Whether a time-series log exists.
+        progress: What a running gap diagnosis is doing now, in words (e.g.
+            "candidate 4 of 9 fitted (heat_transfer)"); None for any other run,
+            and once it has ended.
     """
 
     id: int
@@ -547,14 +550,16 @@ class RunInfo(Documented):
     session_id: int | None = None
     station: str = ""
     has_series: bool
+    progress: str | None = None
 
     @classmethod
-    def from_row(cls, r: dict[str, Any]) -> RunInfo:
-        """The run as the store holds it (``Store.run``), with whether its log is on disk."""
+    def from_row(cls, r: dict[str, Any], progress: str | None = None) -> RunInfo:
+        """The run as the store holds it (``Store.run``), with whether its log is on disk and, while it runs,
+        what its job says it is doing."""
         return cls(**{k: r[k] for k in ("id", "kind", "status", "started", "ended", "metrics", "result", "person",
                                         "notes", "session_id")}, spec=r["spec"] or {},
                    notes_edited=r.get("notes_edited"), station=r.get("station") or "",
-                   has_series=bool(r["log_csv"]) and Path(r["log_csv"]).is_file())
+                   has_series=bool(r["log_csv"]) and Path(r["log_csv"]).is_file(), progress=progress)
 
 
 class ComparedRun(Documented):

@@ -179,6 +179,9 @@ async function poll(id) {
   if (r.kind !== 'diagnosis') { say(`run ${id} is a ${r.kind} run, not a diagnosis`, 'bad'); return; }
   const stopBtn = $('dstop');
   if (r.status === 'running') {
+    // what the job says it is doing (the protocol's experiment, the baseline, candidate k of n, …)
+    const stopping = !stopBtn.hidden && stopBtn.disabled;  // "stopping …" stays until it has
+    if (r.progress && !stopping) say(`diagnosis ${id} running: ${r.progress}…`);
     if (stopBtn.hidden) {
       stopBtn.hidden = false; stopBtn.disabled = false;
       stopBtn.onclick = async () => {

@@ -14,6 +14,7 @@ import logging
 import shutil
 import threading
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -215,7 +216,8 @@ def check_bounds(req: BoundsCheck) -> BoundsChecked:
 
 
 def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, sources: list[Path],
-          stop: threading.Event, server_stopping: threading.Event) -> None:
+          stop: threading.Event, server_stopping: threading.Event,
+          progress: Callable[[str], None] | None = None) -> None:
     from app.engine.diagnosis.core import Cancelled
     from app.engine.diagnosis.protocol import run_protocol
     from app.engine.diagnosis.run import diagnose_dir
@@ -225,14 +227,14 @@ def _work(store: Store, run_id: int, req: DiagnosisRequest, logdir: Path, source
         if req.protocol is not None:
             p = req.protocol
             rig = simulated_rig(p.seed, p.param_error, p.errors, dict.fromkeys(p.effects, p.magnitude))
-            run_protocol(rig, seed=p.seed, scale=p.scale, outdir=logdir, stop=stop)
+            run_protocol(rig, seed=p.seed, scale=p.scale, outdir=logdir, stop=stop, progress=progress)
         else:
             logdir.mkdir(parents=True, exist_ok=True)
             for src in sources:
                 for suffix in (".csv", ".json"):
                     shutil.copyfile(src.with_suffix(suffix), logdir / (src.stem + suffix))
         report = diagnose_dir(logdir, adapter="station", held_out=req.held_out, stop=stop, bounds=req.bounds,
-                              traces=True, candidates=req.effects)
+                              traces=True, candidates=req.effects, progress=progress)
         # ≈ 10⁵ numbers: beside the logs, not in the run's result, which every listing of runs carries;
         # a disk that cannot take them costs the pictures, not the diagnosis (its traces then answer 404)
         try:
@@ -320,7 +322,9 @@ def start(req: DiagnosisRequest, store: StoreDep, jobs: JobsDep, request: Reques
     run_id = store.run_started("diagnosis", spec, "")
     logdir = logdir_of(data_dir, run_id)
     try:
-        jobs.start(f"diagnosis-{run_id}", lambda stop: _work(store, run_id, req, logdir, sources, stop, jobs.stop))
+        name = f"diagnosis-{run_id}"
+        jobs.start(name, lambda stop: _work(store, run_id, req, logdir, sources, stop, jobs.stop,
+                                            lambda msg: jobs.say(name, msg)))
     except JobRefused as exc:  # lost a race with another request: the stored run says why
         store.run_finished(run_id, "cancelled", None, {"error": str(exc)})
         raise HTTPException(409, str(exc)) from exc

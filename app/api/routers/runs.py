@@ -18,7 +18,7 @@ from pydantic import Field, ValidationError
 
 from app.api.auth import ADMIN, AUTH_RESPONSES, READ, THERAPIST
 from app.api.compare import CONTROLLERS, compared_runs, radar_scale
-from app.api.deps import IdPath, StoreDep, completed_diagnosis
+from app.api.deps import IdPath, JobsDep, StoreDep, completed_diagnosis
 from app.api.diagnosis_report import DiagnosisReport
 from app.api.models import ComparedRun, Comparison, Documented, NotesIn, PersonFilter, RunInfo, Series
 from app.engine.params import ParameterError
@@ -132,14 +132,17 @@ def exercises_table(store: StoreDep, person: PersonFilter = None,
 
 
 @router.get("/{run_id}", response_model=RunInfo, responses=NOT_FOUND, summary="One run with metrics and results")
-def run_detail(run_id: IdPath, store: StoreDep) -> RunInfo:
+def run_detail(run_id: IdPath, store: StoreDep, jobs: JobsDep) -> RunInfo:
     """`result` is the run's own: an exercise's scored window (counted from `result.program_start_s` on the
     log's clock), each chamber's period-2 toggle over it (`pressure_toggle_bar`) and, past 0.02 bar, a
     plain-words `warnings` entry (the pressure loop chatters), the range of motion it reached
     (`angle_range_deg`: the lowest and highest measured angle over its program [deg, positive pronation]),
     an identification's parameters with their intervals and test points, a tuning's gains and loops, a
-    diagnosis's report. `has_series`: whether a log is stored for `…/series` and `…/export`."""
-    return RunInfo.from_row(_get(store, run_id))
+    diagnosis's report. `has_series`: whether a log is stored for `…/series` and `…/export`. `progress`: while a
+    gap diagnosis runs, what it is doing now."""
+    r = _get(store, run_id)
+    said = jobs.progress(f"diagnosis-{run_id}") if r["kind"] == "diagnosis" and r["status"] == "running" else None
+    return RunInfo.from_row(r, said)
 
 
 @router.get("/{run_id}/comparison", response_model=Comparison,

@@ -1541,7 +1541,7 @@ def base_groups(family: Family) -> list[list[Param]]:
 def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
              candidates: Sequence[str] | None = None, protocol: dict[str, list[str]] | None = None,
              blocks: int | None = None, stop: threading.Event | None = None,
-             with_traces: bool = False) -> dict[str, Any]:
+             with_traces: bool = False, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The full diagnosis; returns the report (JSON-able).
 
     BLAS runs on one thread meanwhile, process-wide (the server runs one
@@ -1565,15 +1565,20 @@ def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
             :class:`Cancelled` (a server shutting down must not leave it running).
         with_traces: Add ``traces`` (:func:`traces` of the held-out logs under the
             baseline and the verdict's model; ≈ 10⁵ numbers, so only when asked).
+        progress: Told in words what the diagnosis is doing as each stage
+            starts and each candidate's fit ends (from the fits' threads too), e.g.
+            ``"candidate 4 of 9 fitted (heat_transfer)"``; a minute of work on
+            ten minutes of logs says where it is.
     """
     with threadpool_limits(limits=1, user_api="blas"):
-        return _diagnose(family, calib_exps, held_exps, candidates, protocol, blocks, stop, with_traces)
+        return _diagnose(family, calib_exps, held_exps, candidates, protocol, blocks, stop, with_traces,
+                         progress or (lambda _msg: None))
 
 
 def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
               candidates: Sequence[str] | None = None, protocol: dict[str, list[str]] | None = None,
               blocks: int | None = None, stop: threading.Event | None = None,
-              with_traces: bool = False) -> dict[str, Any]:
+              with_traces: bool = False, progress: Callable[[str], None] = lambda _msg: None) -> dict[str, Any]:
     """:func:`diagnose` with BLAS already limited."""
     if not calib_exps or not held_exps:
         raise ValueError("need at least one calibration and one held-out experiment")
@@ -1595,13 +1600,26 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     floor = noise_floor(family, held, held_meas)
     norm = _Norm(spread, floor)
 
+    progress(f"recalibrating the baseline on {len(calib)} log{'s' * (len(calib) != 1)}")
     base, formed = recalibrate_forms(family, calib, scales, stop)
     base_sc = score(family, held, base, blocks)
+    counted = threading.Lock()
 
     def singles_from(refs: list[tuple[Fit, Scores]]) -> list[list[Candidate]]:
         # every candidate beside every reference, all at once (see _each)
-        done = _each(lambda job: _evaluate(family, calib, held, job[0], job[1], (job[2],), norm, blocks, scales,
-                                           stop), [(r, r_sc, c) for r, r_sc in refs for c in cands])
+        jobs = [(r, r_sc, c) for r, r_sc in refs for c in cands]
+        fitted = [0]
+        beside = " beside each of the two baselines" if len(refs) > 1 else ""
+        progress(f"fitting {len(cands)} candidate{'s' * (len(cands) != 1)}{beside}")
+
+        def one(job: tuple[Fit, Scores, str]) -> Candidate:
+            c = _evaluate(family, calib, held, job[0], job[1], (job[2],), norm, blocks, scales, stop)
+            with counted:
+                fitted[0] += 1
+                progress(f"candidate {fitted[0]} of {len(jobs)} fitted ({job[2]})")
+            return c
+
+        done = _each(one, jobs)
         return [done[i * len(cands):(i + 1) * len(cands)] for i in range(len(refs))]
 
     form = None
@@ -1652,6 +1670,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         beaten |= {"calibration_cost_before": base.rss, "calibration_cost_after": again.rss,
                    "rereferenced": again.rss < base.rss}
         if again.rss < base.rss:
+            progress("the baseline refitted from a candidate's values was better: judging the candidates again")
             base = again
             base_sc = score(family, held, base, blocks)
             singles, = singles_from([(base, base_sc)])
@@ -1670,6 +1689,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
     while pool and len(selected) < MAX_EFFECTS:
         if selected:
             prev = tuple(s.effect for s in selected)
+            progress(f"fitting {len(pool)} candidate{'s' * (len(pool) != 1)} beside {' + '.join(prev)}")
 
             def beside(c: Candidate, r: Fit = ref, r_sc: Scores = ref_sc, pr: tuple[str, ...] = prev) -> Candidate:
                 return _evaluate(family, calib, held, r, r_sc, (*pr, c.effect), norm, blocks, scales, stop)
@@ -1698,6 +1718,8 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
                     only = [x for x in protocol.get(win.effect, []) if x not in protocol.get(c.effect, [])]
                     separate.append({"effects": [win.effect, c.effect], "experiments": only or
                                      protocol.get(win.effect, [])})
+    if selected:
+        progress(f"weighing the alternatives to {' + '.join(c.effect for c in selected)}")
     alternatives, verdict_model = _alternatives(family, calib, held, base, base_sc, selected, singles, norm, blocks,
                                                 scales, stop)
     dropped: dict[str, list[str]] = {}  # effect → the alternatives that took its place
@@ -1716,6 +1738,7 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         # what is left is scored as the last effect kept (a later round's fit includes the dropped effect)
         ref_sc = kept[-1].scores if kept else base_sc
     selected = kept
+    progress("writing the report")
     e_final, nr_final = _e(ref_sc, norm)
     recal = recalibration(family, base, selected[-1] if selected else None)
     chans = list(family.channels)

@@ -251,7 +251,8 @@ def check_outdir(outdir: str | Path, names: Sequence[str]) -> None:
 
 def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: int = 2, scale: float = 1.0,
                  kinds: Sequence[str] | None = None, outdir: str | Path | None = None,
-                 stop: threading.Event | None = None) -> list[Experiment]:
+                 stop: threading.Event | None = None,
+                 progress: Callable[[str], None] | None = None) -> list[Experiment]:
     """Run the whole protocol on a simulated rig.
 
     Args:
@@ -263,6 +264,8 @@ def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: 
         outdir: Also write every log there in the station's format.
         stop: Once set, the protocol ends before its next experiment with
             :class:`~app.engine.diagnosis.core.Cancelled`.
+        progress: Told which experiment is being simulated, e.g.
+            ``"simulating experiment 3 of 14 (hold_closed-1)"``.
 
     Returns:
         The experiments, named ``KIND-REP`` (e.g. ``hold_closed-2``).
@@ -286,6 +289,8 @@ def run_protocol(params: PlantParams | None = None, seed: int = 0, repetitions: 
             raise_if_stopped(stop, "protocol")
             sd = seed * 1000 + rep * 100 + j
             name = f"{kind}-{rep + 1}"
+            if progress is not None:
+                progress(f"simulating experiment {len(exps) + 1} of {repetitions * len(kinds)} ({name})")
             if kind == "isotonic":
                 res = run_workout(params, isotonic_program(rep), duration=ISOTONIC_S * scale, rate_hz=RATE_HZ,
                                   seed=sd, pw_bar=ISOTONIC_PW_BAR)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -71,7 +71,8 @@ def split_last_third(exps: list[Experiment]) -> tuple[list[Experiment], list[Exp
 def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] | None = None,
                  stop: threading.Event | None = None,
                  bounds: dict[str, tuple[float, float]] | None = None, traces: bool = False,
-                 candidates: Sequence[str] | None = None) -> dict[str, Any]:
+                 candidates: Sequence[str] | None = None,
+                 progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The report for the logs in ``logdir``.
 
     Args:
@@ -89,6 +90,9 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
             time (``traces``, :func:`~app.engine.diagnosis.core.traces`).
         candidates: The effects to try (default: all the family's); the
             baseline's recalibration is the same either way.
+        progress: Told what the diagnosis is doing (see
+            :func:`~app.engine.diagnosis.core.diagnose`); a closed chamber's
+            messages start with its record's name.
 
     Raises:
         ValueError: ``bounds`` for an adapter's logs, or a bound the family
@@ -117,7 +121,8 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
                                  "DATA_EMPS_PULSES.mat)")
         exps = [read_emps(p) for p in mats]
         calib, held = _split(exps, held_out)
-        rep = diagnose(DriveFamily(), calib, held, candidates, protocol=PROTOCOL, stop=stop, with_traces=traces)
+        rep = diagnose(DriveFamily(), calib, held, candidates, protocol=PROTOCOL, stop=stop, with_traces=traces,
+                       progress=progress)
         return rep | {"adapter": "emps"}
     if kind == "chamber_leak":
         records = sorted(d.glob("*.csv"))
@@ -128,7 +133,8 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
         for p in records:
             a, b = split_time(read_chamber_leak(p))
             fam = ChamberFamily()
-            rep = diagnose(fam, [a], [b], candidates, protocol=PROTOCOL, stop=stop, with_traces=traces)
+            said = None if progress is None else (lambda msg, on=progress, n=p.stem: on(f"{n}: {msg}"))
+            rep = diagnose(fam, [a], [b], candidates, protocol=PROTOCOL, stop=stop, with_traces=traces, progress=said)
             reports[p.stem] = rep | {"leak_on_the_rig": fam.leak_on_the_rig(rep)}
         return {"adapter": "chamber_leak", "reports": reports}
     family = RotaryFamily(bounds=bounds)  # refuses a bad bound before the logs are read
@@ -149,7 +155,8 @@ def diagnose_dir(logdir: str | Path, adapter: str = "auto", held_out: list[str] 
         family.channels = tuple(c for c in family.channels if c not in unmeasured)
     atmosphere = vented_atmosphere(exps)  # read in the format's wiring, which read_conventions restored
     calib, held, why = _split_station(exps, held_out)
-    report = diagnose(family, calib, held, candidates, protocol=PROTOCOL, stop=stop, with_traces=traces)
+    report = diagnose(family, calib, held, candidates, protocol=PROTOCOL, stop=stop, with_traces=traces,
+                      progress=progress)
     report["experiments"]["unmeasured_channels"] = unmeasured
     report["experiments"]["atmosphere"] = atmosphere
     report["experiments"] |= conv.report()
