@@ -1609,8 +1609,8 @@ def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
         # every candidate beside every reference, all at once (see _each)
         jobs = [(r, r_sc, c) for r, r_sc in refs for c in cands]
         fitted = [0]
-        beside = " beside each of the two baselines" if len(refs) > 1 else ""
-        progress(f"fitting {len(cands)} candidate{'s' * (len(cands) != 1)}{beside}")
+        both = " beside each of the two baselines" if len(refs) > 1 else ""
+        progress(f"fitting {len(cands)} candidate{'s' * (len(cands) != 1)}{both}")
 
         def one(job: tuple[Fit, Scores, str]) -> Candidate:
             c = _evaluate(family, calib, held, job[0], job[1], (job[2],), norm, blocks, scales, stop)
