@@ -50,6 +50,25 @@ def port_arg(text: str) -> int:
     return v
 
 
+def writable_file(flag: str, path: str) -> None:
+    """Refuse output file ``path`` (given as ``flag``) before the work runs: a folder, or one in a folder
+    that is missing or cannot be written (the work can take minutes, and its result would be lost)."""
+    out = Path(path)
+    if out.is_dir():
+        raise ValueError(f"{flag} {out}: a folder; give a file name, e.g. {out / 'report.json'}")
+    if not out.parent.is_dir() or not os.access(out.parent, os.W_OK):
+        raise ValueError(f"{flag} {out}: the folder {out.parent} does not exist or cannot be written")
+
+
+def writable_dir(flag: str, path: str) -> None:
+    """Refuse output folder ``path`` (given as ``flag``) before the work runs: a file, or under one, or under
+    a folder that cannot be written (a missing folder is made, with its parents)."""
+    d = Path(path)
+    have = next(p for p in (d, *d.parents) if p.exists())
+    if not have.is_dir() or not os.access(have, os.W_OK):
+        raise ValueError(f"{flag} {d}: {have} is not a folder that can be written")
+
+
 def _sim_scenario(args: argparse.Namespace) -> int:
     """One of the thesis's scenarios (SPEC §5) with one controller, scored as ``bench thesis`` scores it."""
     from app.engine.params import check_range
@@ -96,6 +115,8 @@ def _sim(args: argparse.Namespace) -> int:
     from app.engine.sim import run_workout
 
     check_working_pressure(args.pw)
+    if args.log_dir:
+        writable_dir("--log-dir", args.log_dir)
     if args.scenario:
         return _sim_scenario(args)
     if args.controller is not None or args.target is not None:
@@ -140,6 +161,7 @@ def _bench(args: argparse.Namespace) -> int:
 
         if not args.out:
             raise ValueError("bench thesis needs --out DIR (where results.json and the charts go)")
+        writable_dir("--out", args.out)
         records = run_thesis_bench(Path(args.out), seed=args.seed, plots=not args.no_plots)
         if args.json:
             print(strict_json(records))
@@ -170,7 +192,11 @@ def _identify(args: argparse.Namespace) -> int:
     from app.engine.ident.gui_rules import MSG_N, MSG_PW, LinearInputs, RotaryInputs
     from app.engine.params import ParameterError, check_working_pressure
 
-    # the thesis GUIs' rules and messages, before anything runs
+    # the thesis GUIs' rules and messages, before anything runs; and where the results go
+    if args.out:
+        writable_dir("--out", args.out)
+    if args.rig == "sweep" and args.table:
+        writable_file("--table", args.table)
     if args.rig == "seal":
         from pathlib import Path
 
@@ -512,16 +538,9 @@ def _diagnose(args: argparse.Namespace) -> int:
         raise ValueError("--traces: the traces go into the report's JSON; give --json OUT.json too")
     # where the results go is checked before the diagnosis runs (a minute on ten minutes of logs)
     if args.json_out:
-        out = Path(args.json_out)
-        if out.is_dir():
-            raise ValueError(f"--json {out}: a folder; give the report's file name, e.g. {out / 'report.json'}")
-        if not out.parent.is_dir() or not os.access(out.parent, os.W_OK):
-            raise ValueError(f"--json {out}: the folder {out.parent} does not exist or cannot be written")
+        writable_file("--json", args.json_out)
     if args.plots:
-        plots = Path(args.plots)
-        have = next(p for p in (plots, *plots.parents) if p.exists())
-        if not have.is_dir() or not os.access(have, os.W_OK):
-            raise ValueError(f"--plots {plots}: {have} is not a folder that can be written")
+        writable_dir("--plots", args.plots)
     # on a terminal, one line kept up to date says where the diagnosis is (a minute on ten minutes of logs)
     live = sys.stderr.isatty()
 

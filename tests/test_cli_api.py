@@ -92,6 +92,25 @@ def test_a_seed_or_port_that_cannot_be_one_is_refused_naming_the_argument(
     assert list(tmp_path.iterdir()) == []  # nothing written
 
 
+@pytest.mark.parametrize(("argv", "words"), [
+    (["identify", "sweep", "--table", "missing/table.json"], "--table missing/table.json: the folder missing does not"),
+    (["identify", "rotary", "--out", "afile/out"], "--out afile/out: afile is not a folder that can be written"),
+    (["bench", "thesis", "--out", "afile"], "--out afile: afile is not a folder that can be written"),
+    (["sim", "--duration", "1", "--log-dir", "afile"], "--log-dir afile: afile is not a folder that can be written"),
+])
+def test_where_a_command_writes_is_checked_before_it_runs(argv: list[str], words: str, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str],
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """A friction sweep with its table going to a missing folder ran to its end, then failed writing it."""
+    from app.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("")
+    assert main(argv) == 2
+    assert words in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]  # nothing written
+
+
 def test_an_exercise_with_no_controller_chosen_runs_one_that_does_not_chatter(
         capsys: pytest.CaptureFixture[str]) -> None:
     """What a therapist gets by pressing start: the API's, the station's and ``cwrr sim``'s default

@@ -919,7 +919,7 @@ def test_cwrr_diagnose_refuses_where_its_results_cannot_go_before_it_runs(
         m.setattr(run, "diagnose", not_reached)
         for args, words in (
                 (["--json", str(tmp_path / "no" / "r.json")], f"the folder {tmp_path / 'no'} does not exist"),
-                (["--json", str(tmp_path)], "a folder; give the report's file name"),
+                (["--json", str(tmp_path)], "a folder; give a file name"),
                 (["--plots", str(logs / "Ultimaker_020.csv" / "figs")], "Ultimaker_020.csv is not a folder that")):
             assert main(["diagnose", str(logs), *args]) == 2, args
             assert words in capsys.readouterr().err, args
