@@ -1430,3 +1430,33 @@ def test_the_diagnosis_page_shows_the_engine_and_stops_it_from_its_header(statio
             _call(base, "POST", "/api/engine/clear")
         page.close()
     assert not errors, errors
+
+
+def test_a_running_diagnosis_shows_what_it_is_doing(station: tuple[str, str], browser: object) -> None:
+    """The page said "running (roughly 15–30 s per 83 s of logs …)" for as long as a diagnosis took; it now
+    shows the run's ``progress`` from each poll, and a stop asked for stays said until the run has ended."""
+    from playwright.sync_api import Browser, expect
+
+    assert isinstance(browser, Browser)
+    base, _viser = station
+    page = browser.new_page(viewport={"width": 1200, "height": 800})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    said = ["recalibrating the baseline on 7 logs"]
+    run = {"id": 4243, "kind": "diagnosis", "status": "running", "started": 1.0, "ended": None, "spec": {},
+           "metrics": None, "result": None, "person": "", "notes": "", "has_series": False}
+    page.route("**/api/runs/4243", lambda route: route.fulfill(json=run | {"progress": said[-1]}))
+    page.route("**/api/diagnoses/4243/stop", lambda route: route.fulfill(json=run))
+    try:
+        page.goto(base + "/static/diagnosis.html?report=4243")
+        expect(page.locator("#msg")).to_have_text("diagnosis 4243 running: recalibrating the baseline on 7 logs…")
+        said.append("candidate 4 of 9 fitted (heat_transfer)")
+        expect(page.locator("#msg")).to_have_text("diagnosis 4243 running: candidate 4 of 9 fitted (heat_transfer)…")
+        page.click("#dstop")
+        expect(page.locator("#msg")).to_have_text("stopping diagnosis 4243…")
+        said.append("candidate 5 of 9 fitted (tube_dynamics)")
+        page.wait_for_timeout(1700)  # one more poll, answered "running" with news: the stop stays said
+        expect(page.locator("#msg")).to_have_text("stopping diagnosis 4243…")
+    finally:
+        page.close()
+    assert not errors, errors
