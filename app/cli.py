@@ -187,6 +187,37 @@ def _progress_printer(enabled: bool) -> Callable[[object], None] | None:
     return show if enabled else None
 
 
+def friction_summary(detail: dict[str, Any], rotary: bool) -> str:
+    """An identification's fit per direction as a person reads it: each parameter with its 95 % interval,
+    the tests behind it and the model chosen (``--json`` prints the contract, ``--out`` keeps everything).
+
+    Args:
+        detail: Direction → :meth:`~app.engine.ident.fitting.FrictionFit.as_dict` (and, on the linear
+            rig, ``moving_mass_kg``).
+        rotary: Torques and angular speeds (N·m, rad/s), else forces and speeds (N, m/s).
+    """
+    force, speed, damping = ("N·m", "rad/s", "N·m·s/rad") if rotary else ("N", "m/s", "N·s/m")
+    rows = (("fs", "T_s" if rotary else "F_s", force), ("fc", "T_c" if rotary else "F_c", force),
+            ("vs", "ω_s" if rotary else "v_s", speed), ("b", "B", damping))
+    lines = []
+    for key, d in detail.items():
+        if not isinstance(d, dict):
+            continue
+        ch = d["choice"]
+        model = "Stribeck" if ch["selected"] == "stribeck" else "Coulomb + viscous"
+        lines.append(f"{key} ({d['direction']}): {d['n_static']} static and {d['n_dynamic']} dynamic tests, "
+                     f"RMSE {d['rmse']:.3g} {force}; {model} chosen by AICc ({ch['aicc_stribeck']:.1f} against "
+                     f"{ch['aicc_cv']:.1f}; the thesis's rule: {ch['thesis_rule']})")
+        for k, label, unit in rows:
+            ci = d["ci"][k]
+            why = "  the interval reaches its search bound: these tests do not pin it down" if ci["at_bound"] else ""
+            lines.append(f"  {label:4s} {d[k]:10.4g} {unit:10s} 95 % [{ci['lo']:.4g}, {ci['hi']:.4g}] "
+                         f"({ci['method']}){why}")
+    if detail.get("moving_mass_kg"):  # 0: no inertia correction asked for
+        lines.append(f"moving mass fitted for the inertia correction: {detail['moving_mass_kg']:.4g} kg")
+    return "\n".join(lines)
+
+
 def _identify(args: argparse.Namespace) -> int:
     from app.engine.ident import runner
     from app.engine.ident.gui_rules import MSG_N, MSG_PW, LinearInputs, RotaryInputs
@@ -301,9 +332,9 @@ def _identify(args: argparse.Namespace) -> int:
     if args.json:
         print(strict_json(out))
     else:
-        print(strict_json(detail, indent=1, default=float))
-        print(f"rig time {run.summary.sim_seconds:.0f} s, computed in {run.summary.wall_seconds:.1f} s",
-              file=sys.stderr)
+        print(friction_summary(detail, rotary=args.rig == "rotary"))
+        print(f"rig time {run.summary.sim_seconds:.0f} s, computed in {run.summary.wall_seconds:.1f} s; "
+              "--json prints the estimates, --out DIR keeps every test and fit", file=sys.stderr)
     return 0
 
 

@@ -103,6 +103,26 @@ def test_cli_invalid_inputs_exit_2_with_gui_message(argv: list[str], capsys: pyt
     assert gr.MSG_N in err or gr.MSG_PW in err
 
 
+@pytest.mark.slow
+def test_cli_prints_each_directions_fit_as_a_table_with_its_intervals(capsys: pytest.CaptureFixture[str]) -> None:
+    """`cwrr identify rotary` without --json printed the whole fit as 107 lines of indented JSON; it prints
+    each direction's parameters with their 95 % intervals and the model chosen, the numbers --json gives."""
+    assert cli_main(["identify", "rotary", "--ns", "30", "--nd", "30", "--json"]) == 0
+    contract = json.loads(capsys.readouterr().out)
+    assert cli_main(["identify", "rotary", "--ns", "30", "--nd", "30"]) == 0
+    out, err = capsys.readouterr()
+    lines = out.splitlines()
+    assert len(lines) == 10, out  # per direction: a heading and T_s, T_c, ω_s, B
+    for head, key in ((0, "ccw"), (5, "cw")):
+        assert lines[head].startswith(f"{key} (") and "static and" in lines[head] and "chosen by AICc" in lines[head]
+        for row, (label, name, unit) in enumerate((("T_s", "Ts", "N·m"), ("T_c", "Tc", "N·m"),
+                                                   ("ω_s", "ws", "rad/s"), ("B", "B", "N·m·s/rad")), head + 1):
+            cells = lines[row].split()
+            assert cells[0] == label and cells[2] == unit and "95 %" in lines[row], lines[row]
+            assert float(cells[1]) == pytest.approx(contract[key][name], rel=1e-3), (lines[row], contract[key])
+    assert "rig time" in err and "--json prints the estimates" in err
+
+
 # ----------------------------------------------------------------- fitting round trip
 
 
