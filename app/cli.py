@@ -187,6 +187,30 @@ def _progress_printer(enabled: bool) -> Callable[[object], None] | None:
     return show if enabled else None
 
 
+def human(obj: Any, indent: int = 0) -> str:
+    """A result as a person reads it (``--json`` gives the same as JSON): one ``key: value`` per line,
+    nested results indented, numbers to four significant digits, text as written (JSON escapes ω as \\u03c9)."""
+
+    def cell(v: Any) -> str:
+        if isinstance(v, bool) or v is None:
+            return str(v).lower() if v is not None else "—"
+        if isinstance(v, float):
+            return f"{v:.4g}" if math.isfinite(v) else "—"
+        if isinstance(v, list | tuple) and all(not isinstance(x, dict | list | tuple) for x in v):
+            return ", ".join(cell(x) for x in v)
+        return str(v)
+
+    pad = "  " * indent
+    lines = []
+    for k, v in (obj.items() if isinstance(obj, dict) else enumerate(obj)):
+        if isinstance(v, dict) or (isinstance(v, list | tuple) and any(isinstance(x, dict | list | tuple) for x in v)):
+            lines.append(f"{pad}{k}:")
+            lines.append(human(v, indent + 1))
+        else:
+            lines.append(f"{pad}{k}: {cell(v)}")
+    return "\n".join(lines)
+
+
 def friction_summary(detail: dict[str, Any], rotary: bool) -> str:
     """An identification's fit per direction as a person reads it: each parameter with its 95 % interval,
     the tests behind it and the model chosen (``--json`` prints the contract, ``--out`` keeps everything).
@@ -242,7 +266,7 @@ def _identify(args: argparse.Namespace) -> int:
             (d / "seal_friction.json").write_text(strict_json(result, indent=1))
             if not args.no_plots:
                 seal_plot(result, d / "seal_friction.png")
-        print(strict_json(result) if args.json else strict_json(result["seals"], indent=1))
+        print(strict_json(result) if args.json else human(result["seals"]))
         return 0
     if args.rig == "dcv":
         return _identify_dcv(args)
@@ -256,7 +280,7 @@ def _identify(args: argparse.Namespace) -> int:
         table = load_table(args.table) if args.table else None
         res = {k: v for k, v in closed_loop_validation(args.target, args.pw, table, args.seed).items()
                if k not in ("t", "torque", "moving")}
-        print(strict_json(res, indent=None if args.json else 1))
+        print(strict_json(res) if args.json else human(res))
         return 0
     if args.ns < 30 or args.nd < 30:
         raise ParameterError(f"{'ns' if args.ns < 30 else 'nd'}: {MSG_N}")
@@ -378,7 +402,8 @@ def _identify_dcv(args: argparse.Namespace) -> int:
     if args.json:
         print(strict_json(summary, default=float))
     else:
-        print(strict_json(summary["validation"]["mean_mape_pct"], indent=1))
+        print("mean absolute percentage error of each flow model [%]:")
+        print(human(summary["validation"]["mean_mape_pct"], 1))
         print(f"rig time {summary['timing']['rig_seconds']:.0f} s, computed in "
               f"{summary['timing']['wall_seconds']:.1f} s", file=sys.stderr)
     return 0
@@ -411,7 +436,7 @@ def _identify_pid(args: argparse.Namespace) -> int:
             from app.engine.ident.plots import autotune_plot
 
             autotune_plot(r, d / f"pid_{args.side}.png")
-    print(strict_json(out, default=float) if args.json else strict_json(out["tuned"], indent=1, default=float))
+    print(strict_json(out, default=float) if args.json else human(out["tuned"]))
     return 0
 
 

@@ -257,3 +257,14 @@ def test_ctrl_c_ends_a_command_with_one_line_and_exit_130(
     monkeypatch.setattr(cli, "_diagnose", interrupted)
     assert cli.main(["diagnose", str(tmp_path)]) == 130
     assert capsys.readouterr().err == "cwrr diagnose: stopped\n"
+
+
+def test_a_result_is_printed_for_a_person_as_key_value_lines() -> None:
+    """`cwrr identify pid` printed its note as JSON, ω as \\u03c9 and ° as \\u00b0; a result without --json now
+    reads as lines, nested ones indented, numbers to four digits and what a fit could not give as a dash."""
+    from app.cli import human
+
+    text = human({"Ki": 1.96480599, "note": "G(jω_c) lags 1.8°", "ok": False, "sd": float("nan"),
+                  "thesis": {"mae": 0.043, "p_bar": [0.99358, 2.98141]}, "none": None})
+    assert text.splitlines() == ["Ki: 1.965", "note: G(jω_c) lags 1.8°", "ok: false", "sd: —", "thesis:",
+                                 "  mae: 0.043", "  p_bar: 0.9936, 2.981", "none: —"]
