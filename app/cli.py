@@ -101,11 +101,7 @@ def _sim_report(args: argparse.Namespace, summary: dict[str, object], log: np.nd
         w.append_many(log)
         w.close()
         summary["log"] = str(w.csv_path)
-    if args.json:
-        print(strict_json(summary))
-    else:
-        for k_, v in summary.items():
-            print(f"{k_:28s} {v}")
+    print(strict_json(summary) if args.json else human(summary))
     return 0
 
 
