@@ -207,6 +207,19 @@ def human(obj: Any, indent: int = 0) -> str:
     return "\n".join(lines)
 
 
+def sweep_table(table: dict[str, Any]) -> str:
+    """A friction sweep's table laid out as the thesis's Table 4.2: a row per working pressure, each
+    direction's T_s, T_c, ω_s and B across (CCW +, CW −)."""
+    params = (("ts", "T_s", "N·m"), ("tc", "T_c", "N·m"), ("ws", "ω_s", "rad/s"), ("b", "B", "N·m·s/rad"))
+    cols = [("pw_bar", "P_w [bar]")] + [(f"{k}_{d}", f"{label}{sign} [{unit}]")
+                                         for d, sign in (("ccw", "+"), ("cw", "−")) for k, label, unit in params]
+    width = [max(len(h), 9) for _, h in cols]
+    lines = ["  ".join(h.rjust(w) for (_, h), w in zip(cols, width, strict=True))]
+    for i in range(len(table["pw_bar"])):
+        lines.append("  ".join(f"{table[k][i]:.4g}".rjust(w) for (k, _), w in zip(cols, width, strict=True)))
+    return "\n".join(lines)
+
+
 def friction_summary(detail: dict[str, Any], rotary: bool) -> str:
     """An identification's fit per direction as a person reads it: each parameter with its 95 % interval,
     the tests behind it and the model chosen (``--json`` prints the contract, ``--out`` keeps everything).
@@ -334,7 +347,9 @@ def _identify(args: argparse.Namespace) -> int:
         if args.json:
             print(strict_json(out))
         else:
-            print(strict_json(detail, indent=1, default=float))
+            print(sweep_table(out))
+            print("--json prints the table, --table FILE saves it for the controllers, --out DIR keeps every fit",
+                  file=sys.stderr)
         return 0
     if args.out:
         from pathlib import Path

@@ -268,3 +268,17 @@ def test_a_result_is_printed_for_a_person_as_key_value_lines() -> None:
                   "thesis": {"mae": 0.043, "p_bar": [0.99358, 2.98141]}, "none": None})
     assert text.splitlines() == ["Ki: 1.965", "note: G(jω_c) lags 1.8°", "ok: false", "sd: —", "thesis:",
                                  "  mae: 0.043", "  p_bar: 0.9936, 2.981", "none: —"]
+
+
+def test_a_friction_sweep_is_printed_as_the_thesis_lays_out_table_4_2() -> None:
+    """A row per working pressure, each direction's T_s, T_c, ω_s and B across: the --json table's numbers."""
+    from app.cli import sweep_table
+
+    table = {"pw_bar": [2.0, 3.0], **{f"{k}_{d}": [s * 0.1 * (i + 1), s * 0.2 * (i + 1)]
+                                      for i, k in enumerate(("ts", "tc", "ws", "b"))
+                                      for d, s in (("ccw", 1.0), ("cw", -1.0))}}
+    head, *rows = sweep_table(table).splitlines()
+    assert head.split() == ["P_w", "[bar]", "T_s+", "[N·m]", "T_c+", "[N·m]", "ω_s+", "[rad/s]", "B+", "[N·m·s/rad]",
+                            "T_s−", "[N·m]", "T_c−", "[N·m]", "ω_s−", "[rad/s]", "B−", "[N·m·s/rad]"]
+    assert [r.split() for r in rows] == [["2", "0.1", "0.2", "0.3", "0.4", "-0.1", "-0.2", "-0.3", "-0.4"],
+                                         ["3", "0.2", "0.4", "0.6", "0.8", "-0.2", "-0.4", "-0.6", "-0.8"]]
