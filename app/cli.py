@@ -167,7 +167,7 @@ def _bench(args: argparse.Namespace) -> int:
     if not (0.0 < args.duration <= 3600.0):
         raise ValueError(f"--duration {args.duration} is outside its allowed range (0, 3600] s")
     res = perf(duration=args.duration)
-    print(strict_json(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
+    print(strict_json(res) if args.json else human(res))
     return 0
 
 
