@@ -190,8 +190,8 @@ def human(obj: Any, indent: int = 0) -> str:
     def cell(v: Any) -> str:
         if isinstance(v, bool) or v is None:
             return str(v).lower() if v is not None else "—"
-        if isinstance(v, float):
-            return f"{v:.4g}" if math.isfinite(v) else "—"
+        if isinstance(v, float):  # large ones whole (94934, not 9.493e+04)
+            return "—" if not math.isfinite(v) else f"{v:.0f}" if 1e4 <= abs(v) < 1e12 else f"{v:.4g}"
         if isinstance(v, list | tuple) and all(not isinstance(x, dict | list | tuple) for x in v):
             return ", ".join(cell(x) for x in v)
         return str(v)

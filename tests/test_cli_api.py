@@ -264,9 +264,9 @@ def test_a_result_is_printed_for_a_person_as_key_value_lines() -> None:
     reads as lines, nested ones indented, numbers to four digits and what a fit could not give as a dash."""
     from app.cli import human
 
-    text = human({"Ki": 1.96480599, "note": "G(jω_c) lags 1.8°", "ok": False, "sd": float("nan"),
+    text = human({"Ki": 1.96480599, "note": "G(jω_c) lags 1.8°", "ok": False, "sd": float("nan"), "us": 94933.67,
                   "thesis": {"mae": 0.043, "p_bar": [0.99358, 2.98141]}, "none": None})
-    assert text.splitlines() == ["Ki: 1.965", "note: G(jω_c) lags 1.8°", "ok: false", "sd: —", "thesis:",
+    assert text.splitlines() == ["Ki: 1.965", "note: G(jω_c) lags 1.8°", "ok: false", "sd: —", "us: 94934", "thesis:",
                                  "  mae: 0.043", "  p_bar: 0.9936, 2.981", "none: —"]
 
 
