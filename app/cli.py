@@ -239,8 +239,8 @@ def friction_summary(detail: dict[str, Any], rotary: bool) -> str:
         ch = d["choice"]
         model = "Stribeck" if ch["selected"] == "stribeck" else "Coulomb + viscous"
         lines.append(f"{key} ({d['direction']}): {d['n_static']} static and {d['n_dynamic']} dynamic tests, "
-                     f"RMSE {d['rmse']:.3g} {force}; {model} chosen by AICc ({ch['aicc_stribeck']:.1f} against "
-                     f"{ch['aicc_cv']:.1f}; the thesis's rule: {ch['thesis_rule']})")
+                     f"RMSE {d['rmse']:.3g} {force}; {model} chosen by AICc (Stribeck {ch['aicc_stribeck']:.1f}, "
+                     f"Coulomb + viscous {ch['aicc_cv']:.1f}; the thesis's rule: {ch['thesis_rule']})")
         for k, label, unit in rows:
             ci = d["ci"][k]
             why = "  the interval reaches its search bound: these tests do not pin it down" if ci["at_bound"] else ""
