@@ -608,7 +608,7 @@ def _diagnose(args: argparse.Namespace) -> int:
         writable_file("--json", args.json_out)
     if args.plots:
         writable_dir("--plots", args.plots)
-    # on a terminal, one line kept up to date says where the diagnosis is (a minute on ten minutes of logs)
+    # on a terminal, one line kept up to date says where the diagnosis is
     live = sys.stderr.isatty()
 
     def progress(msg: str) -> None:

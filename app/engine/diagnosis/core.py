@@ -1576,10 +1576,10 @@ def diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
 
 
 def _diagnose(family: Family, calib_exps: list[Any], held_exps: list[Any],
-              candidates: Sequence[str] | None = None, protocol: dict[str, list[str]] | None = None,
-              blocks: int | None = None, stop: threading.Event | None = None,
-              with_traces: bool = False, progress: Callable[[str], None] = lambda _msg: None) -> dict[str, Any]:
-    """:func:`diagnose` with BLAS already limited."""
+              candidates: Sequence[str] | None, protocol: dict[str, list[str]] | None,
+              blocks: int | None, stop: threading.Event | None,
+              with_traces: bool, progress: Callable[[str], None]) -> dict[str, Any]:
+    """:func:`diagnose` with BLAS already limited (its only caller gives every argument)."""
     if not calib_exps or not held_exps:
         raise ValueError("need at least one calibration and one held-out experiment")
     cands = checked_candidates(family.name, family.candidates, candidates)
