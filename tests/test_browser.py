@@ -31,6 +31,38 @@ pytestmark = [pytest.mark.slow, pytest.mark.serial,
                                  "(./dev test installs it where apt and root are available)")]
 
 
+AUDIT_TAGS = ["wcag2a", "wcag2aa", "wcag21a", "wcag21aa", "wcag22aa"]
+"""axe-core's tags for WCAG 2.2's levels A and AA (its best-practice rules are advice, and left out)."""
+VISER_OWN = [".mantine-ActionIcon-root", "a > img", "[data-dock-minimize]"]
+"""viser's own chrome, which the station does not draw: its panel's icon buttons, which have no name,
+its logo's link, whose image has no text, and its panel's 18-px drag handle (viser 1.1.x)."""
+
+
+def _accessible(page: Any, where: str, exclude: list[str] | None = None) -> None:
+    """axe-core finds no WCAG 2.2 A/AA violation on the page as it stands.
+
+    axe-core (Deque's engine, bundled by axe-playwright-python) checks what a machine can: text
+    contrast (4.5 : 1 for small text), a name on every control, image and form field, landmarks, valid
+    ARIA, targets a pointer can hit. Checked at each state the walks stop at, not only on the first
+    load: a result, a chart's legend and a running state put new text on the page.
+
+    Args:
+        page: The Playwright page.
+        where: What the page shows, for the message.
+        exclude: CSS selectors of parts the station does not draw (viser's own chrome).
+    """
+    from axe_playwright_python.sync_playwright import Axe
+
+    context = {"exclude": [[sel] for sel in exclude]} if exclude else None
+    res = Axe().run(page, context=context, options={"runOnly": {"type": "tag", "values": AUDIT_TAGS},
+                                                    "resultTypes": ["violations"]})
+    found = [f"{v['id']} ({v['impact']}): {v['help']}: "
+             + "; ".join(f"{n['target']} {' '.join((n.get('failureSummary') or '').split())[:160]}"
+                         for n in v["nodes"][:5])
+             for v in res.response["violations"]]
+    assert not found, f"{where}:\n" + "\n".join(found)
+
+
 @pytest.fixture(scope="module")
 def station(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]]:
     # the README's `cwrr serve` in a process of its own, as a therapist's browser meets it: in a thread
@@ -133,6 +165,7 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     expect(rom).not_to_have_class("valid")
     expect(page.locator("#f-vane_area_mm2")).to_be_disabled()  # fields unlock in order
     page.screenshot(path=str(SHOTS / "1-refused-value.png"))
+    _accessible(page, "1-refused-value")
     for name, value in (("rom_deg", 270), ("vane_area_mm2", 855), ("radius_mm", 23), ("ns", 30), ("nd", 30),
                         ("pw_bar", 3)):
         f = page.locator(f"#f-{name}")
@@ -186,6 +219,7 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     assert time.monotonic() - t0 < 2.0  # issue 5: live torque and pressure within 2 s of Start
     page.wait_for_timeout(5000)  # pressurise, engage, converge: enough of the window to score
     page.screenshot(path=str(SHOTS / "2-live-exercise.png"))
+    _accessible(page, "2-live-exercise")
     # the handle's angle, live, between the end stops (±135°) and inside their no-action zones (10° each)
     expect(page.locator("#handle-gauge")).to_be_visible()
     # read at one instant: the next poll moves the mark (two reads that straddled a poll, 0.16 % of the bar
@@ -248,6 +282,7 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     expect(viser.locator("p", has_text="Station:")).to_have_text("Station: running")
     expect(viser.get_by_role("button", name="E-STOP")).to_be_visible()
     viser.screenshot(path=str(SHOTS / "4-viser-live-plots.png"))
+    _accessible(viser, "4-viser-live-plots", exclude=VISER_OWN)
     viser.close()
     page.bring_to_front()
     expect(page.locator("#state")).to_have_text("running")  # still exercising when STOP is pressed
@@ -314,6 +349,7 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
         assert json.loads(r.read())["notes"] == "stopped: asked for a break"
     page.evaluate("window.scrollTo(0, 0)")  # the sticky header is drawn where the page is scrolled to
     page.screenshot(path=str(SHOTS / "3-metrics-and-history.png"), full_page=True)
+    _accessible(page, "3-metrics-and-history")
 
     with page.expect_download() as dl:
         row.get_by_text("CSV").click()
@@ -463,6 +499,7 @@ def test_a_researcher_tunes_a_pressure_loop_and_exercises_with_the_gains(station
     expect(page.locator("#bode-legend")).to_contain_text("plant G measured (coherence ")
     page.evaluate("window.scrollTo(0, document.getElementById('last').getBoundingClientRect().top + scrollY - 120)")
     page.screenshot(path=str(SHOTS / "5-pid-tuning.png"))
+    _accessible(page, "5-pid-tuning")
     page.click("#save-gains")
     expect(page.locator("#pid-msg")).to_contain_text("Saved as gain set")
     set_id = page.locator("#pid-msg").inner_text().split("gain set ")[1].split(";")[0]
@@ -492,12 +529,12 @@ def test_a_researcher_tunes_a_pressure_loop_and_exercises_with_the_gains(station
     # why, and what the live chart's first trace is there: the cylinder's load cell, in newtons
     expect(page.locator("#start-msg")).to_have_text(
         "Exercises run on the forearm robot: disconnect, choose it under Rig and connect.")
-    expect(page.locator("#live-force")).to_have_text("■ cylinder force [N]")
+    expect(page.locator("#live-force")).to_have_text("cylinder force [N]")
     expect(page.locator("#live-target")).to_be_hidden()
     page.click("[data-action=disconnect]")
     expect(page.locator("#state")).to_have_text("disconnected")
     page.select_option("#rig", "rotary")
-    expect(page.locator("#live-force")).to_have_text("■ interaction torque [N·m]")
+    expect(page.locator("#live-force")).to_have_text("interaction torque [N·m]")
     expect(page.locator("#start-msg")).to_have_text("")
     assert not errors, errors
 
@@ -573,6 +610,7 @@ def test_an_exercise_is_drawn_beside_the_other_controllers_on_a_radar(station: t
     expect(radar.locator("text").first).to_have_text(f"MAEmax {scale['mae']:#.3g}")  # toPrecision(3)
     table = box.locator("#compare-table")
     expect(table.locator("th a")).to_have_text(["Cascade fuzzy adaptive PID", "Cascade PID", "Default"])
+    _accessible(page, "a radar of three controllers")  # the links' words in the page's colours, not the lines'
     expect(table.locator("th small").first).to_have_text("run 4242 (this one)")
     for i, m in enumerate(keys):
         cells = table.locator("tr").nth(i + 1).locator("td")
@@ -649,6 +687,7 @@ def test_a_friction_identification_shows_each_parameter_with_its_interval_and_bo
             assert len(ticks) >= 3 and 0.0 in ticks and np.allclose(np.diff(ticks), ticks[1] - ticks[0]), (attr, ticks)
         if width == 1400:
             page.locator("xpath=//div[@id='last']/..").screenshot(path=str(SHOTS / "7-friction-identification.png"))
+            _accessible(page, "7-friction-identification")
         # on a phone the table scrolls inside its box; the page itself stays as wide as the screen
         assert page.evaluate("document.documentElement.scrollWidth") <= width
         page.close()
@@ -684,6 +723,7 @@ def test_a_valve_map_is_drawn_as_the_thesis_figures_draw_it(station: tuple[str, 
     expect(chart).to_have_attribute("data-points", "11")  # every a the map holds; the missing one is left out
     expect(page.locator("#cpr-legend")).to_contain_text("P_s = 3.00 bar")
     expect(page.locator("#cpr-legend")).to_contain_text("P_s = 5.00 bar")
+    _accessible(page, "a valve map")  # its legend keyed in eight colours, the orange of P_s = 5 bar among them
     # another kind of result takes the chart away again
     page.evaluate("lr => showLast(lr)", {"run_id": 97, "status": "stopped", "result": {}})
     expect(chart).to_be_hidden()
@@ -711,6 +751,7 @@ def test_on_the_linear_rig_the_live_bar_shows_the_piston_along_the_cylinders_str
         expect(page.locator("#gauge-caption")).to_have_text("left: retracted · right: extended (225 mm, the C1 stroke)")
         # the simulated piston rests retracted: the live samples put the mark at the left end
         expect(page.locator("#handle-angle")).to_have_text("Piston: 0 of 225 mm extended", timeout=10_000)
+        _accessible(page, "the dashboard on the linear rig")
         mark = page.locator("#handle-mark")
         assert float(mark.get_attribute("x").rstrip("%")) < 1.0  # type: ignore[union-attr]
         # 100 mm of the 225, read at once (the next live poll puts the mark back where the piston is)
@@ -808,6 +849,7 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
         page.goto(base)
         expect(page.locator("#signin")).to_be_visible(timeout=30000)
         expect(page.locator("#state")).to_have_text("sign in")
+        _accessible(page, "the sign-in prompt")
         page.fill("#token", "not-the-token-" + "0123456789")
         page.click("#signin-btn")
         expect(page.locator("#who")).to_have_text("token not accepted")
@@ -835,6 +877,7 @@ def test_on_a_station_with_tokens_the_dashboard_asks_for_one_and_uses_it(browser
         expect(page.locator("#pid-box .admin-note")).to_be_visible()
         expect(page.locator("#pid-box .admin-note")).to_have_text(
             "Needs the admin role: this tab is signed in as a therapist.")
+        _accessible(page, "a therapist's tab")
         page.click("[data-action=start]")
         expect(page.locator("#state")).to_have_text("running", timeout=30000)
         page.wait_for_timeout(1500)  # 1.5 s of the run (300 periods) before the therapist stops it
@@ -1019,6 +1062,7 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     names = sorted(r["spec"]["name"] for r in imported()[: 2])
     assert names == ["isotonic-1", "isotonic-2"]
     page.screenshot(path=str(SHOTS / "diagnosis_upload.png"))
+    _accessible(page, "diagnosis_upload")
     # the station's run history lists them beside the finished diagnosis (whose metrics are not a workout's)
     deadline = time.monotonic() + 120
     while True:
@@ -1084,6 +1128,7 @@ def test_a_researcher_uploads_rig_logs_on_the_diagnosis_page(station: tuple[str,
     expect(page.locator("#trace-legend")).to_contain_text("measured")
     page.select_option("#trace-view", "residual")
     page.screenshot(path=str(SHOTS / "6-gap-diagnosis.png"), full_page=True)
+    _accessible(page, "6-gap-diagnosis")
     # the person typed on the page went with the protocol's run and its experiments' runs
     with urllib.request.urlopen(base + "/api/runs?kind=diagnosis_protocol&limit=1", timeout=10) as r:
         (proto,) = json.loads(r.read())
@@ -1343,6 +1388,7 @@ def test_on_a_phone_or_tablet_both_pages_fit_and_the_stop_buttons_stay_on_screen
         expect(page.locator("#state")).not_to_have_text("…")
         assert page.evaluate(overflow) <= 0, page.evaluate(overflow)
         stop_buttons_on_screen()
+        _accessible(page, f"the dashboard {width} px wide")
         if width < 720:
             # one column in an exercise's order: the live charts right after the exercise form, the
             # identification and tuning forms after the history
@@ -1371,6 +1417,7 @@ def test_on_a_phone_or_tablet_both_pages_fit_and_the_stop_buttons_stay_on_screen
         expect(page.locator("#state")).not_to_have_text("…")
         assert page.evaluate(overflow) <= 0, page.evaluate(overflow)
         stop_buttons_on_screen()  # the diagnosis page has them too (it runs its protocol on the rig)
+        _accessible(page, f"the diagnosis page {width} px wide")
     finally:
         page.close()
 
@@ -1397,6 +1444,7 @@ def test_the_diagnosis_page_shows_the_engine_and_stops_it_from_its_header(statio
         # the state follows what the station does, whoever started it
         run_id = _call(base, "POST", "/api/engine/start", exercise)["run_id"]
         expect(page.locator("#state")).to_have_text("running")
+        _accessible(page, "the diagnosis page while the rig runs")  # the green badge had read 4.4 : 1
         page.click("#stop")
         expect(page.locator("#state")).to_have_text("idle")
         assert _call(base, "GET", f"/api/runs/{run_id}")["status"] == "stopped"
@@ -1425,6 +1473,7 @@ def test_the_diagnosis_page_shows_the_engine_and_stops_it_from_its_header(statio
         assert st["state"] == "fault" and st["fault"] == "emergency stop (API)", st
         expect(page.locator("#stop")).to_be_disabled()
         expect(page.locator("#estop")).to_be_enabled()  # pressed again, it still answers
+        _accessible(page, "the diagnosis page with a fault latched")
     finally:
         if _call(base, "GET", "/api/engine")["state"] == "fault":
             _call(base, "POST", "/api/engine/clear")
@@ -1454,6 +1503,7 @@ def test_a_running_diagnosis_shows_what_it_is_doing(station: tuple[str, str], br
         expect(page.locator("#msg")).to_have_text("diagnosis 4243 running: candidate 4 of 9 fitted (heat_transfer)…")
         page.click("#dstop")
         expect(page.locator("#msg")).to_have_text("stopping diagnosis 4243…")
+        _accessible(page, "a diagnosis being stopped")
         said.append("candidate 5 of 9 fitted (tube_dynamics)")
         page.wait_for_timeout(1700)  # one more poll, answered "running" with news: the stop stays said
         expect(page.locator("#msg")).to_have_text("stopping diagnosis 4243…")

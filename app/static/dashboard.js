@@ -64,7 +64,7 @@ function render(st) {
   $('pid-box').hidden = rigKind !== 'rotary';
   // the linear cylinder's load cell measures a force, and nothing there follows a torque target
   const rotary = rigKind === 'rotary';
-  $('live-force').textContent = rotary ? '■ interaction torque [N·m]' : '■ cylinder force [N]';
+  $('live-force').textContent = rotary ? 'interaction torque [N·m]' : 'cylinder force [N]';
   $('live-target').hidden = !rotary;
   const sm = $('start-msg');
   if (!rotary && st.state !== 'disconnected') {
@@ -235,7 +235,7 @@ async function drawComparison(id) {
   const head = c.runs.map(r => {
     const [nm, col, dash] = CONTROLLERS[r.controller] || [r.controller, '#333', ''];
     return `<th><svg width="24" height="8" aria-hidden="true"><line x1="0" y1="4" x2="24" y2="4" stroke="${col}" stroke-width="2" ` +
-      `stroke-dasharray="${dash}"/></svg> <a href="#" data-show-run="${r.run_id}" style="color:${col}">${esc(nm)}</a><br>` +
+      `stroke-dasharray="${dash}"/></svg> <a href="#" data-show-run="${r.run_id}">${esc(nm)}</a><br>` +
       `<small class="muted">run ${r.run_id}${r.run_id === c.run_id ? ' (this one)' : ''}</small></th>`;
   }).join('');
   const rows = keys.map(m => `<tr><td>${METRICS[m]}</td>` + c.runs.map(r => {
@@ -368,8 +368,8 @@ function drawCpr(maps) {
     });
   });
   c.dataset.points = drawn;
-  $('cpr-legend').innerHTML = ps.map((p, k) => `<span style="color:${PS_COLORS[k % PS_COLORS.length]}">■ P_s = ${fmt(p, 3)} bar</span>`).join('') +
-    '<span>— filling</span><span>- - exhausting</span>';
+  $('cpr-legend').replaceChildren(...ps.map((p, k) => legendItem('■', PS_COLORS[k % PS_COLORS.length], `P_s = ${fmt(p, 3)} bar`)),
+    legendItem('—', 'inherit', 'filling'), legendItem('┄┄', 'inherit', 'exhausting'));
 }
 
 let lastTuning = null;
@@ -440,9 +440,9 @@ function drawBode(frf, loops, wcTuned) {
   ctx.textAlign = 'right'; ctx.fillText('ω [rad/s]', W - R, H - 3); ctx.textAlign = 'left';
   c.dataset.lines = names.length; c.dataset.points = frf.w_rad_s.length; c.dataset.ticks = gt.ticks.join(' ');
   const coh = frf.coherence.map(x => fmt(x, 2)).join(', ');
-  $('bode-legend').innerHTML = names.map(k => `<span style="color:${LOOP_COLORS[k] || '#333'}">— C·G, ${esc(k)}</span>`).join('') +
-    `<span style="color:#2ca02c">● plant G measured (coherence ${esc(coh)})</span>` +
-    '<span style="color:#b3261e">- - 0 dB, −180° and the tuned crossover</span>';
+  $('bode-legend').replaceChildren(...names.map(k => legendItem('—', LOOP_COLORS[k] || '#333', `C·G, ${k}`)),
+    legendItem('●', '#2ca02c', `plant G measured (coherence ${coh})`),
+    legendItem('┄┄', '#b3261e', '0 dB, −180° and the tuned crossover'));
 }
 
 // A friction identification, as the thesis GUI's "estimated parameter results" and "friction torque-speed

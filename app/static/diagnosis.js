@@ -345,9 +345,7 @@ function show(rep) {
   // in HTML, not in the SVG: a model's name ("after with sensor_bias + friction_per_direction")
   // has no fixed width, and fixed slots let it run into the next entry
   const legend = $('howfar-legend');
-  legend.replaceChildren(...names.map((n, k) => Object.assign(document.createElement('span'),
-    { textContent: `■ ${n}`, style: `color:${colours[k]}` })),
-    Object.assign(document.createElement('span'), { textContent: '- - - noise floor (1×)', style: 'color:#7a8794' }));
+  legend.replaceChildren(...names.map((n, k) => legendItem('■', colours[k], n)), legendItem('┄┄', '#7a8794', 'noise floor (1×)'));
   $('ranking').innerHTML = '<tr><th>Effect</th><th>GC</th><th>GC 90 % CI</th><th title="what the baseline values its fit refitted beside the effect close with the effect taken out (— when it refitted none)">GC without the effect</th><th>ΔBIC</th><th>Significant</th><th>Parameters</th></tr>' +
     rep.ranking.map(c => `<tr class="${c.significant ? 'sig' : ''}"><td>${esc(c.effect)}${meaning[c.effect] ? `<br><small class="why">${esc(meaning[c.effect])}</small>` : ''}</td><td>${fmt(c.gap_closure)}</td>` +
       `<td>${fmt(c.gap_closure_ci90[0])} … ${fmt(c.gap_closure_ci90[1])}</td><td>${fmt(c.rebased_gap_closure)}</td><td>${fmt(c.delta_bic)}</td><td>${c.significant ? 'yes' : 'no'}${c.dropped_for ? ` (not the verdict: ${c.dropped_for.join(', ')} explains more)` : ''}${!c.significant && (c.not_significant_because || []).length ? ` <small class="why">(${esc(c.not_significant_because.join("; "))})</small>` : c.switched_off ? ' (its fit left it switched off)' : ''}</td>` +
@@ -458,7 +456,7 @@ function drawTrace() {
   }
   svg.innerHTML = out;
   svg.dataset.series = series.length;
-  const band = residual && floor ? [['▬ ± noise floor', '#9aa4ae']] : [];
-  $('trace-legend').replaceChildren(...[...series.map(([name, , colour, , dash]) => [`${name === 'measured' ? '▬' : dash ? '- -' : '—'} ${name}`, colour]),
-    ...band].map(([text, colour]) => Object.assign(document.createElement('span'), {textContent: text, style: `color:${colour}`})));
+  const band = residual && floor ? [['▬', '#9aa4ae', '± noise floor']] : [];
+  $('trace-legend').replaceChildren(...[...series.map(([name, , colour, , dash]) => [name === 'measured' ? '▬' : dash ? '┄┄' : '—', colour, name]),
+    ...band].map(([key, colour, text]) => legendItem(key, colour, text)));
 }
