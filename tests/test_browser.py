@@ -444,6 +444,11 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     expect(page.locator("#metrics tr").nth(3)).to_have_text("e_var [N²·m²]–")
     expect(page.locator(f"#last-warn-{run_id}")).to_have_text(warning)
     expect(page.locator(f"#last-warn-{run_id}")).to_have_class("msg bad")
+    # and from the keyboard: the run's number is a link Tab reaches (a row takes no focus), Enter opens it
+    page.evaluate("document.getElementById('last').textContent = ''")
+    page.locator("#runs tbody tr").first.get_by_role("link", name=f"run {run_id}: show its result").focus()
+    page.keyboard.press("Enter")
+    expect(page.locator(f"#last-warn-{run_id}")).to_have_text(warning)
     # how far the arm went, in the words viser uses too
     from app.api.liveplots import range_words
 

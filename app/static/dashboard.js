@@ -810,7 +810,7 @@ async function loadRuns() {
     const exp = r.has_series ? ['csv', 'parquet', 'mat'].map(f => `<a href="/api/runs/${r.id}/export?fmt=${f}" download>${f === 'mat' ? 'MATLAB' : f.toUpperCase()}</a>`).join(' · ') : '';
     // plain words for the therapist; the API's code (what /api/runs?kind= takes) stays in the tooltip
     const group = KIND_GROUPS[r.kind] || r.kind;
-    return `<tr data-run="${r.id}"${r.id === shownRun ? ' class="shown"' : ''}><td>${r.id}</td><td title="kind=${esc(r.kind)}">${esc(group)}</td><td>${esc(what)}</td><td>${esc(r.person)}</td><td>${esc(r.status)}</td><td>${mae}</td><td>${exp}</td></tr>`;
+    return `<tr data-run="${r.id}"${r.id === shownRun ? ' class="shown"' : ''}><td><a href="#" data-open-run aria-label="run ${r.id}: show its result">${r.id}</a></td><td title="kind=${esc(r.kind)}">${esc(group)}</td><td>${esc(what)}</td><td>${esc(r.person)}</td><td>${esc(r.status)}</td><td>${mae}</td><td>${exp}</td></tr>`;
   }).join('');
 }
 
@@ -956,10 +956,13 @@ $('save-run-notes').addEventListener('click', async () => {
     loadRuns();
   } catch (e) { say('run-notes-msg', e.message, false); }
 });
-// a click on a run (not on its export links) shows its result where the last one shows
+// a click on a run (not on its export links) shows its result where the last one shows; the run's number
+// is a link, so that a keyboard reaches it too (Tab, then Enter: a row takes no focus)
 $('runs').addEventListener('click', async ev => {
   const tr = ev.target.closest('tr[data-run]');
-  if (!tr || ev.target.closest('a')) return;
+  const link = ev.target.closest('a');
+  if (!tr || (link && !link.hasAttribute('data-open-run'))) return;
+  ev.preventDefault();
   try { await showRun(tr.dataset.run); }
   catch (e) { $('hist-msg').className = 'msg bad'; $('hist-msg').textContent = `run ${tr.dataset.run}: ${e.message}`; }
 });
