@@ -207,6 +207,11 @@ def test_stopping_the_server_cancels_a_running_diagnosis_and_records_it(tmp_path
 def test_a_running_diagnosis_is_stopped_on_request_and_the_next_one_may_start(tmp_path: Path) -> None:
     """A diagnosis started by mistake had held the one job slot for minutes, with no way to end it but
     stopping the server."""
+    from app.engine.warm import warm
+
+    # the stop is honoured between replays; a cold kernel cache (a run of this file alone, after an edit)
+    # makes the first replay a 35 s compile no stop can cut short, and the 20 s wait ran out (1 run in 5)
+    warm(["replay"])
     app = create_app(Settings(data_dir=str(tmp_path), viser_port=0, auto_connect=False))
     with TestClient(app) as c:
         rid = c.post("/api/diagnoses", json={"protocol": {"scale": 10.0}}).json()["run_id"]
