@@ -506,8 +506,37 @@ def _serve_claimed(settings: Settings) -> int:
         why = make_server_realtime()
         if why:
             print(f"cwrr serve: normal scheduling ({why}); /api/health reports the loop's jitter", file=sys.stderr)
+    print(serve_banner(settings), file=sys.stderr, flush=True)
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
     return 0
+
+
+def serve_banner(settings: Any) -> str:
+    """What ``cwrr serve`` is about to start, in one line: where the dashboard and the live plots answer,
+    which rig it drives and where the runs are kept (a database URL's password left out).
+
+    Args:
+        settings: The server's :class:`~app.api.settings.Settings`.
+    """
+    from app.storage import database_dialect, redact_url, sqlite_path
+
+    wildcard = settings.host in ("0.0.0.0", "::", "")
+    host = "<this station>" if wildcard else f"[{settings.host}]" if ":" in settings.host else settings.host
+    parts = [f"the dashboard at http://{host}:{settings.port}/"]
+    if settings.viser_port:
+        parts.append(f"the live plots at {settings.viser_public_url or f'http://{host}:{settings.viser_port}'}/")
+    if not settings.start_engine:
+        parts.append("no engine")
+    elif settings.hardware:
+        parts.append(f"the rig configured in {settings.hardware}")
+    else:
+        parts.append("the simulated rig" + ("" if settings.auto_connect else " (connected from the dashboard)"))
+    url = settings.db_url
+    parts.append(f"runs kept in {sqlite_path(url)} (SQLite)" if database_dialect(url) == "sqlite"
+                 else f"runs kept in {redact_url(url)}")
+    if settings.auth_enabled:
+        parts.append("tokens required")
+    return "cwrr serve: " + ", ".join(parts) + "; Ctrl-C stops it"
 
 
 def _port_taken(host: str, port: int) -> str | None:

@@ -129,7 +129,7 @@ def check_database(url: str) -> None:
     try:
         psycopg.connect(url, connect_timeout=CONNECT_TIMEOUT_S).close()
     except psycopg.Error as exc:
-        raise ValueError(f"cannot reach the database at {_redact(url)}: {str(exc).strip()}") from None
+        raise ValueError(f"cannot reach the database at {redact_url(url)}: {str(exc).strip()}") from None
 
 
 def sqlite_path(url: str) -> Path:
@@ -139,11 +139,11 @@ def sqlite_path(url: str) -> Path:
         ValueError: For any other scheme, naming what is supported.
     """
     if database_dialect(url) != "sqlite":
-        raise ValueError(f"database_url: {_redact(url)} is not a sqlite:///PATH URL")
+        raise ValueError(f"database_url: {redact_url(url)} is not a sqlite:///PATH URL")
     return Path(url[len("sqlite:///"):])
 
 
-def _redact(url: str) -> str:
+def redact_url(url: str) -> str:
     """The URL without its password (for messages)."""
     head, at, tail = url.rpartition("@")
     if not at:
@@ -265,7 +265,7 @@ class Store:
             try:
                 self._db: Any = psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S)
             except psycopg.OperationalError as exc:
-                raise ValueError(f"cannot reach the database at {_redact(url)}: {str(exc).strip()}") from None
+                raise ValueError(f"cannot reach the database at {redact_url(url)}: {str(exc).strip()}") from None
             ddl = _TABLES.format(**_POSTGRES)
             with self._lock:
                 # two stations (or a station and a test) starting at once on one database: PostgreSQL's

@@ -128,6 +128,23 @@ def test_cwrr_serve_takes_its_address_from_the_environment_unless_a_flag_names_i
     assert cli_main(["serve"]) == 0
     assert cli_main(["serve", "--host", "127.0.0.1", "--port", str(port), "--viser-port", str(viser_port)]) == 0
     assert served == [("0.0.0.0", env_port, 0), ("127.0.0.1", port, viser_port)]  # flags win
+    # each start says in one line where the station answers, what it drives and where the runs go
+    err = capsys.readouterr().err.splitlines()
+    assert f"cwrr serve: the dashboard at http://<this station>:{env_port}/, the simulated rig (connected from " \
+           f"the dashboard), runs kept in {tmp_path}/cwrr.sqlite3 (SQLite), tokens required; Ctrl-C stops it" in err
+    assert f"cwrr serve: the dashboard at http://127.0.0.1:{port}/, the live plots at " \
+           f"http://127.0.0.1:{viser_port}/, the simulated rig (connected from the dashboard), runs kept in " \
+           f"{tmp_path}/cwrr.sqlite3 (SQLite), tokens required; Ctrl-C stops it" in err
+
+
+def test_the_start_up_line_names_a_database_without_its_password() -> None:
+    from app.api.settings import Settings
+    from app.cli import serve_banner
+
+    line = serve_banner(Settings(database_url="postgresql://lab:s3cret-pw@db.example:5432/cwrr", viser_port=0,
+                                 hardware=""))
+    assert "s3cret-pw" not in line and "runs kept in postgresql://lab:***@db.example:5432/cwrr" in line, line
+    assert "live plots" not in line  # viser off
 
 
 @pytest.mark.parametrize("flag", ["--port", "--viser-port"])
