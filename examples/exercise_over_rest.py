@@ -1,7 +1,8 @@
 """Run one thesis scenario on the station over its REST API and keep what it measured.
 
 A researcher's script, written against the station's OpenAPI schema (``/openapi.json``, browsable at
-``/docs``) with the standard library only, so that it runs on any Python 3.9+ next to the station:
+``/docs``) with the standard library only (and ``station_client.py`` beside it), so that it runs on any
+Python 3.9+ next to the station:
 
     python examples/exercise_over_rest.py --scenario SC-1 --controller fuzzy --target 1.2 \\
         --person P-017 --csv run.csv
@@ -23,54 +24,12 @@ import json
 import os
 import sys
 import time
-import urllib.error
-import urllib.request
 from typing import Any
+
+from station_client import Refused, Station  # beside this file
 
 METRICS = {"mae": "MAE [N·m]", "iae": "IAE [N·m·s]", "itae": "ITAE [N·m·s²]", "evar": "e_var [N²·m²]",
            "rmse": "RMSE [N·m]", "maxae": "Max AE [N·m]"}
-
-
-class Refused(Exception):
-    """The station answered with an error; the message is its own."""
-
-
-class Station:
-    """The station's REST API, one JSON request at a time.
-
-    Args:
-        url: The station's address, e.g. ``http://127.0.0.1:8000``.
-        token: An API token, or "" on a station without tokens (bound to loopback).
-    """
-
-    def __init__(self, url: str, token: str = "") -> None:
-        self.url = url.rstrip("/")
-        self.headers = {"Content-Type": "application/json"}
-        if token:
-            self.headers["Authorization"] = f"Bearer {token}"
-
-    def raw(self, method: str, path: str, body: dict[str, Any] | None = None) -> bytes:
-        """One request; the answer's bytes. Raises :class:`Refused` with the station's reason."""
-        data = None if body is None else json.dumps(body).encode()
-        req = urllib.request.Request(self.url + path, data=data, method=method, headers=self.headers)
-        try:
-            with urllib.request.urlopen(req, timeout=30) as r:
-                return bytes(r.read())
-        except urllib.error.HTTPError as e:
-            try:
-                detail = json.loads(e.read()).get("detail")
-            except ValueError:
-                detail = e.reason
-            if isinstance(detail, list):  # a 422: each refused field with its message
-                detail = "; ".join(f"{'.'.join(str(x) for x in d.get('loc', [])[1:])}: {d.get('msg')}"
-                                   for d in detail)
-            raise Refused(f"{method} {path} → {e.code}: {detail}") from None
-        except urllib.error.URLError as e:
-            raise Refused(f"the station at {self.url} did not answer ({e.reason})") from None
-
-    def call(self, method: str, path: str, body: dict[str, Any] | None = None) -> Any:
-        """One request; the answer's JSON."""
-        return json.loads(self.raw(method, path, body))
 
 
 def run_exercise(st: Station, spec: dict[str, Any], csv_path: str = "", quiet: bool = False) -> dict[str, Any]:
