@@ -208,7 +208,7 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     page.fill("#session-notes", "left arm, week 3")
     page.click("#new-session")
     expect(page.locator("#session-msg")).to_contain_text("opened for P-007")
-    expect(page.locator("#session option:checked")).to_contain_text("left arm, week 3 (0 runs)")
+    expect(page.locator("#session option:checked")).to_contain_text("0 runs · left arm, week 3")
     session_id = int(page.locator("#session").input_value())
     page.select_option("#workout-set", str(shape_id))
     t0 = time.monotonic()
@@ -332,7 +332,7 @@ def test_a_therapist_walks_the_main_flow(station: tuple[str, str], browser: obje
     assert float(press.get_attribute("data-atm") or "nan") == pytest.approx(1.01325)
     with urllib.request.urlopen(f"{base}/api/sessions/{session_id}", timeout=10) as r:
         assert json.loads(r.read())["runs"] == [run_id]
-    expect(page.locator("#session option:checked")).to_contain_text("(1 run)")
+    expect(page.locator("#session option:checked")).to_contain_text(" · 1 run · left arm")
     # the run's end recounted the session's runs without wiping the notes being typed; saved, they are stored
     expect(page.locator("#session-notes")).to_have_value("left arm, week 3; tired towards the end")
     page.click("#save-session-notes")

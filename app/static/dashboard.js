@@ -885,8 +885,11 @@ async function loadSessions(select) {
   const list = await api('GET', `/api/sessions?person=${encodeURIComponent(who)}`).catch(() => []);
   list.forEach(x => {
     const o = document.createElement('option'); o.value = x.id;
-    o.textContent = `#${x.id} · ${new Date(x.created * 1000).toLocaleString()}` + (x.notes ? ` · ${x.notes.slice(0, 40)}` : '') +
-      ` (${x.runs.length} run${x.runs.length === 1 ? '' : 's'})`;
+    // the count before the notes, and the time to the minute: the picker is a column wide, and the
+    // end of a long label ("… (2 runs)") was cut off
+    const when = new Date(x.created * 1000).toLocaleString([], {dateStyle: 'medium', timeStyle: 'short'});
+    o.textContent = `#${x.id} · ${when} · ${x.runs.length} run${x.runs.length === 1 ? '' : 's'}` +
+      (x.notes ? ` · ${x.notes.slice(0, 40)}` : '');
     sessionNotes[x.id] = x.notes;
     sel.appendChild(o);
   });
