@@ -301,9 +301,9 @@ class Store:
         # app.engine.runlog.repair_log)
         key = station.split(" ", 1)[0]
         self.interrupted_at_open: list[tuple[int, str]] = [
-            (int(r["id"]), str(r["log_csv"] or "")) for r in
+            (int(r["id"]), self._log_now(str(r["log_csv"] or ""), str(r["station"] or ""))) for r in
             self._exec("UPDATE runs SET status='interrupted' WHERE status='running' "
-                       "AND (station = '' OR station = ? OR station LIKE ?) RETURNING id, log_csv",
+                       "AND (station = '' OR station = ? OR station LIKE ?) RETURNING id, log_csv, station",
                        (key, f"{key} %"))]
 
     def close(self) -> None:
@@ -406,11 +406,34 @@ class Store:
         rows = self._exec("SELECT * FROM runs WHERE id=?", (run_id,))
         return self._run(rows[0]) if rows else None
 
-    @staticmethod
-    def _run(d: dict[str, Any]) -> dict[str, Any]:
+    def _run(self, d: dict[str, Any]) -> dict[str, Any]:
         for k in ("spec", "metrics", "result"):
             d[k] = json.loads(d[k]) if d[k] else None
+        d["log_csv"] = self._log_now(d.get("log_csv") or "", d.get("station") or "")
         return d
+
+    def _log_now(self, log_csv: str, station: str) -> str:
+        """Where a run's log is now.
+
+        A run keeps its log's path as written, under its station's data folder then. A folder moved
+        (a new disk, a backup restored on another machine, a volume mounted elsewhere) keeps its
+        station id (``.station-id`` moves with it), so a log of this station's that is not where it
+        was written is looked for at the same place under the folder's new path. Without this, every
+        run of a moved folder had lost its series, exports and diagnosis though its logs were there.
+        Another station's runs (a shared PostgreSQL database) keep their paths.
+        """
+        if not log_csv or not self.station or os.path.exists(log_csv):
+            return log_csv
+        sid, _, then = station.partition(" ")
+        mine, _, now = self.station.partition(" ")
+        old, new = then.partition(":")[2], now.partition(":")[2]  # "host:folder"; a host name has no colon
+        if sid != mine or not old or not new or old == new:
+            return log_csv
+        try:
+            moved = Path(new) / Path(log_csv).relative_to(old)
+        except ValueError:
+            return log_csv
+        return str(moved) if moved.exists() else log_csv
 
     # ------------------------------------------------------------ param sets
 

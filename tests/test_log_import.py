@@ -192,3 +192,30 @@ def test_an_upload_onto_a_full_disk_answers_503_and_leaves_nothing(
     assert _imported(client) == [] and not any((tmp_path / "imported").iterdir())
     monkeypatch.undo()
     assert client.post("/api/runs", json={"name": "rig-1", "meta": META, "csv": _csv(_log(0.5))}).status_code == 201
+
+
+def test_a_data_folder_moved_elsewhere_keeps_its_runs_series(tmp_path: Path) -> None:
+    """A run keeps its log's path as written. A data folder moved (a new disk, a backup restored on
+    another machine) had every run listed without its series, exports or diagnosis, the logs beside it."""
+    from app.storage import Store
+
+    first = tmp_path / "station"
+    with TestClient(_app(first)) as c:
+        run = c.post("/api/runs", json={"name": "rig-1", "meta": META, "csv": _csv(_log())}).json()
+        series = c.get(f"/api/runs/{run['id']}/series").json()
+    moved = tmp_path / "restored" / "cwrr-data"
+    moved.parent.mkdir()
+    first.rename(moved)
+    with TestClient(_app(moved)) as c:
+        again = c.get(f"/api/runs/{run['id']}").json()
+        assert again["has_series"], again
+        assert c.get(f"/api/runs/{run['id']}/series").json()["rows"] == series["rows"]
+        assert c.get(f"/api/runs/{run['id']}/export", params={"fmt": "csv"}).status_code == 200
+        assert [r["has_series"] for r in _imported(c)] == [True]
+    # another station's runs in the same database are not taken for this one's (their logs are theirs)
+    other = Store(f"sqlite:///{moved}/cwrr.sqlite3", station=f"someoneelse host:{moved}")
+    try:
+        row = other.run(run["id"])
+        assert row is not None and not Path(row["log_csv"]).exists() and str(first) in row["log_csv"]
+    finally:
+        other.close()

@@ -362,3 +362,26 @@ def test_a_store_whose_database_dropped_its_connection_reconnects(url: str) -> N
     assert s.session(sid)["person"] == "P-pg"  # type: ignore[index]  # on a new connection
     assert s.run_started("workout", {"scenario": "SC-1"}, "") > 0
     s.close()
+
+
+def test_a_run_a_kill_left_running_is_repaired_where_its_moved_folder_now_is(tmp_path: Path) -> None:
+    """The crash repair looks for the log where the folder is now (the station's id moved with it)."""
+    from app.api.main import repair_interrupted_logs, station_name
+
+    first = tmp_path / "a"
+    store = Store(f"sqlite:///{first}/cwrr.sqlite3", station=station_name(first))
+    log = first / "runs" / "run-1.csv"
+    log.parent.mkdir()
+    log.write_text("t,z_a,z_b,u_a,u_b,p_a,p_b,p_s,theta,omega,torque\n0,1,1,0,10,1,1,8,0,0,0\n0.005,1,1,0,10,1")
+    rid = store.run_started("workout", {}, str(log))
+    store._db.close()  # killed: no close, no end of the run
+    moved = tmp_path / "b"
+    first.rename(moved)
+    store = Store(f"sqlite:///{moved}/cwrr.sqlite3", station=station_name(moved))
+    try:
+        assert store.interrupted_at_open == [(rid, str(moved / "runs" / "run-1.csv"))]
+        assert repair_interrupted_logs(store, moved) == [rid]  # the half-written last row cut back
+        assert (moved / "runs" / "run-1.csv").read_text().splitlines()[-1] == "0,1,1,0,10,1,1,8,0,0,0"
+        assert store.run(rid)["log_csv"] == str(moved / "runs" / "run-1.csv")  # type: ignore[index]
+    finally:
+        store.close()
