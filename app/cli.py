@@ -591,6 +591,21 @@ def _compile_first() -> None:
     print(f"cwrr serve: compiled in {took['sim']:.0f} s", file=sys.stderr, flush=True)
 
 
+def _backup(args: argparse.Namespace) -> int:
+    """Back up the data folder (``cwrr backup OUT``)."""
+    from app.api.settings import Settings
+    from app.storage import backup_data_dir
+
+    settings = Settings(**({"data_dir": args.data_dir} if args.data_dir else {}))
+    res = backup_data_dir(settings.data_dir, args.out, settings.db_url)
+    print(strict_json(res) if args.json else
+          f"cwrr backup: {res['out']}: the database {res['database']}"
+          + (f" ({res['runs']} runs)" if res["runs"] is not None else "")
+          + f", and {res['files']} files ({res['bytes'] / 1e6:.1f} MB); a station started on it "
+          f"(--data-dir {res['out']}) has every run")
+    return 0
+
+
 def _modbus_plant(args: argparse.Namespace) -> int:
     from app.engine.hardware.config import HardwareConfig, load_config
     from app.engine.hardware.modbus import serve_simulated_plant
@@ -869,6 +884,12 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--viser-public-url", default="", help="where browsers reach the live plots when that is not "
                    "this host's --viser-port, e.g. behind a port mapping (default: $CWRR_VISER_PUBLIC_URL)")
     v.set_defaults(fn=_serve)
+    k = sub.add_parser("backup", help="copy the station's data folder (runs, logs, sessions) to a new folder, "
+                       "consistently, also while the station runs")
+    k.add_argument("out", help="the backup's folder (new, outside the data folder)")
+    k.add_argument("--data-dir", default="", help="the station's data folder (default: $CWRR_DATA_DIR, else ./data)")
+    k.add_argument("--json", action="store_true", help="print the summary as JSON")
+    k.set_defaults(fn=_backup)
     mp = sub.add_parser("modbus-plant", help="serve the simulated rig over Modbus TCP (hardware-in-the-loop)")
     mp.add_argument("--host", default="127.0.0.1")
     mp.add_argument("--port", type=port_arg, default=5020)

@@ -18,10 +18,13 @@ import fcntl
 import json
 import math
 import os
+import shutil
 import sqlite3
+import tempfile
 import threading
 import time
 from collections.abc import Callable
+from contextlib import closing
 from pathlib import Path
 from typing import Any
 
@@ -494,3 +497,75 @@ class Store:
                                 tuple(part)):
                 out[int(r["session_id"])].append(int(r["id"]))
         return out
+
+
+SKIPPED_IN_BACKUP = (".station.lock",)
+"""Files of a data folder a backup leaves out: the running station's lock (the database's own files are
+written as one consistent snapshot instead, and its schema lock and write-ahead files are left out)."""
+
+
+def backup_data_dir(data_dir: str | Path, out: str | Path, db_url: str) -> dict[str, Any]:
+    """Copy a station's data folder to ``out``, consistently, while its station may be running.
+
+    The SQLite store is copied with SQLite's online backup (one consistent snapshot, however busy the
+    station is; a plain copy of a database in write-ahead mode can miss the last writes or be torn),
+    then every other file: run logs, imported logs, diagnosis logs, ``.station-id``. A run the snapshot
+    holds as running is one a restored station will call interrupted and cut back to its last whole
+    sample, as after a kill. The copy is made beside ``out`` and renamed into place at the end, so a
+    failed backup leaves no folder that looks like one. Restore by starting a station on the copy
+    (``--data-dir``): its runs' logs are found there (:meth:`Store._log_now`).
+
+    Args:
+        data_dir: The station's data folder.
+        out: The backup's folder: it must not exist yet, nor lie inside the data folder.
+        db_url: The station's database URL: a PostgreSQL database is not copied (that is ``pg_dump``'s
+            work); only the folder's files are.
+
+    Returns:
+        ``out``, the ``database`` copied (its file in the backup, or what to do instead), the ``runs``
+        it holds, and the ``files`` and ``bytes`` copied besides it.
+
+    Raises:
+        ValueError: ``data_dir`` is not a folder, ``out`` exists or lies inside it.
+    """
+    src, dst = Path(data_dir).resolve(), Path(out).resolve()
+    if not src.is_dir():
+        raise ValueError(f"data folder {src} does not exist")
+    if dst.exists():
+        raise ValueError(f"{dst} exists: a backup goes to a new folder")
+    if dst.is_relative_to(src):
+        raise ValueError(f"{dst} lies inside the data folder {src}: each backup would hold the last")
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.partial-", dir=dst.parent))
+    try:
+        db_files: set[Path] = set()
+        runs: int | None = None
+        if database_dialect(db_url) == "sqlite":
+            db = sqlite_path(db_url).resolve()
+            db_files = {db.with_name(db.name + sfx) for sfx in ("", "-wal", "-shm", "-journal", ".schema-lock")}
+            inside = db.is_relative_to(src)
+            copy = tmp / (db.relative_to(src) if inside else Path(db.name))
+            copy.parent.mkdir(parents=True, exist_ok=True)
+            with closing(sqlite3.connect(str(db), timeout=30)) as live, closing(sqlite3.connect(str(copy))) as snap:
+                live.backup(snap)
+                runs = int(snap.execute("SELECT COUNT(*) FROM runs").fetchone()[0])
+            database = str(dst / copy.relative_to(tmp)) + ("" if inside else f" (from {db}, outside the folder)")
+        else:
+            database = f"not copied: {redact_url(db_url)} is PostgreSQL; back it up with pg_dump"
+        files = size = 0
+        for path in sorted(src.rglob("*")):
+            if path.is_dir() or path in db_files or path.name in SKIPPED_IN_BACKUP:
+                continue
+            target = tmp / path.relative_to(src)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                shutil.copy2(path, target)
+            except FileNotFoundError:  # removed while the backup ran (a failed upload's temporary folder)
+                continue
+            files += 1
+            size += target.stat().st_size
+        tmp.rename(dst)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return {"out": str(dst), "database": database, "runs": runs, "files": files, "bytes": size}
