@@ -511,7 +511,7 @@ def _serve_claimed(settings: Settings) -> int:
     return 0
 
 
-def serve_banner(settings: Any) -> str:
+def serve_banner(settings: Settings) -> str:
     """What ``cwrr serve`` is about to start, in one line: where the dashboard and the live plots answer,
     which rig it drives and where the runs are kept (a database URL's password left out).
 
@@ -598,11 +598,12 @@ def _backup(args: argparse.Namespace) -> int:
 
     settings = Settings(**({"data_dir": args.data_dir} if args.data_dir else {}))
     res = backup_data_dir(settings.data_dir, args.out, settings.db_url)
+    copied = res["runs"] is not None  # the SQLite store; a PostgreSQL database is pg_dump's
     print(strict_json(res) if args.json else
           f"cwrr backup: {res['out']}: the database {res['database']}"
-          + (f" ({res['runs']} runs)" if res["runs"] is not None else "")
-          + f", and {res['files']} files ({res['bytes'] / 1e6:.1f} MB); a station started on it "
-          f"(--data-dir {res['out']}) has every run")
+          + (f" ({res['runs']} runs)" if copied else "")
+          + f", and {res['files']} files ({res['bytes'] / 1e6:.1f} MB)"
+          + (f"; a station started on it (--data-dir {res['out']}) has every run" if copied else ""))
     return 0
 
 
